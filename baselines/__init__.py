@@ -1,0 +1,1 @@
+"""Learning agents for window-bench: this package will hold one module per method family from the paper — QC-FQL (Q-chunking with Flow Q-Learning), SAC, RLPD and ACT — each plugging into the shared window-bench harness through one small interface. No agent is implemented yet."""

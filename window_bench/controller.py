@@ -1,0 +1,185 @@
+"""The 500 Hz operational-space controller (OSC) that tracks each 10 Hz pose target.
+
+Per substep: task-space spring-damper on the TCP pose scaled by the operational-space
+inertia, gravity/Coriolis compensation (``qfrc_bias``), payload compensation for the held
+panel while suction is latched, a nullspace joint PD toward a comfortable posture, a
+joint-velocity limiter for the 1.92 rad/s limit of Table 10, and the torque limits.
+
+robosuite's OSC does the same algebra in numpy per substep and ran 12 env steps/s here.
+The algebra lives in one numba-compiled function; the Python side only makes the MuJoCo
+calls that fill the Jacobian and mass matrix, so the controller costs a fraction of the
+physics (``benchmarks/env_speed.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numba
+import numpy as np
+
+from .scene import MAX_JOINT_VELOCITY, TORQUE_LIMITS
+
+
+@dataclass(frozen=True)
+class OSCGains:
+    """Task-space gains in acceleration units (1/s^2, 1/s); critically damped by default."""
+
+    kp_pos: float = 1600.0
+    kp_rot: float = 1600.0
+    damping_ratio: float = 1.0
+    kp_null: float = 10.0
+    vel_limit_margin: float = 0.9     # limiter acts above this fraction of 1.92 rad/s
+    vel_limit_gain: float = 60.0      # 1/s, per unit joint inertia
+
+    def as_array(self) -> np.ndarray:
+        return np.array([
+            self.kp_pos, 2 * self.damping_ratio * np.sqrt(self.kp_pos),
+            self.kp_rot, 2 * self.damping_ratio * np.sqrt(self.kp_rot),
+            self.kp_null, 2 * np.sqrt(self.kp_null),
+            self.vel_limit_margin * MAX_JOINT_VELOCITY, self.vel_limit_gain,
+        ])
+
+
+@numba.njit(cache=True)
+def _cholesky(a):
+    n = a.shape[0]
+    L = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            s = a[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            if i == j:
+                L[i, i] = np.sqrt(max(s, 1e-12))
+            else:
+                L[i, j] = s / L[j, j]
+    return L
+
+
+@numba.njit(cache=True)
+def _chol_solve(L, b):
+    """Solve (L L^T) x = b for a matrix right-hand side b."""
+    n, k = b.shape
+    x = b.copy()
+    for c in range(k):
+        for i in range(n):
+            s = x[i, c]
+            for j in range(i):
+                s -= L[i, j] * x[j, c]
+            x[i, c] = s / L[i, i]
+        for i in range(n - 1, -1, -1):
+            s = x[i, c]
+            for j in range(i + 1, n):
+                s -= L[j, i] * x[j, c]
+            x[i, c] = s / L[i, i]
+    return x
+
+
+@numba.njit(cache=True)
+def osc_torque(jacp, jacr, M, bias, q, qd, pos, mat, target_pos, target_mat,
+               q_null, payload_jac, payload_force, gains, torque_limit, out):
+    """Joint torques for the first 7 dofs. All arrays are float64; writes into ``out``."""
+    n = 7
+    J = np.empty((6, n))
+    for i in range(3):
+        for j in range(n):
+            J[i, j] = jacp[i, j]
+            J[3 + i, j] = jacr[i, j]
+    Mr = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            Mr[i, j] = M[i, j]
+    kp, kd, kpr, kdr, kpn, kdn, vlim, vgain = (gains[0], gains[1], gains[2], gains[3],
+                                               gains[4], gains[5], gains[6], gains[7])
+    # Task-space error: position, and orientation as 0.5 * sum(x_i x x_i*) (small-angle).
+    err = np.zeros(6)
+    for i in range(3):
+        err[i] = target_pos[i] - pos[i]
+    for c in range(3):
+        a0, a1, a2 = mat[0, c], mat[1, c], mat[2, c]
+        b0, b1, b2 = target_mat[0, c], target_mat[1, c], target_mat[2, c]
+        err[3] += 0.5 * (a1 * b2 - a2 * b1)
+        err[4] += 0.5 * (a2 * b0 - a0 * b2)
+        err[5] += 0.5 * (a0 * b1 - a1 * b0)
+    vel = J @ qd[:n].copy()
+    acc = np.empty(6)
+    for i in range(3):
+        acc[i] = kp * err[i] - kd * vel[i]
+        acc[3 + i] = kpr * err[3 + i] - kdr * vel[3 + i]
+    L = _cholesky(Mr)
+    MinvJT = _chol_solve(L, J.T.copy())           # 7 x 6
+    JMJ = J @ MinvJT                               # 6 x 6
+    for i in range(6):
+        JMJ[i, i] += 1e-6
+    Lam_L = _cholesky(JMJ)
+    Lam = _chol_solve(Lam_L, np.eye(6))            # operational-space inertia
+    F = Lam @ acc
+    tau = J.T @ F
+    # Nullspace PD in acceleration units, projected with the dynamically consistent N.
+    qacc_null = np.empty(n)
+    for i in range(n):
+        qacc_null[i] = kpn * (q_null[i] - q[i]) - kdn * qd[i]
+    t_null = Mr @ qacc_null
+    Jbar = MinvJT @ Lam                            # 7 x 6
+    t_null = t_null - J.T @ (Jbar.T @ t_null)
+    for i in range(n):
+        t = tau[i] + t_null[i] + bias[i]
+        for k in range(3):
+            t += payload_jac[k, i] * payload_force[k]
+        # Velocity limiter: strong viscous braking above the margin (no native limit in MuJoCo).
+        over = abs(qd[i]) - vlim
+        if over > 0:
+            t -= np.sign(qd[i]) * over * vgain * Mr[i, i] * 10.0
+        out[i] = min(max(t, -torque_limit[i]), torque_limit[i])
+
+
+class OSC:
+    """Holds the scratch buffers and runs the substep loop for one env step."""
+
+    def __init__(self, model: mujoco.MjModel, tcp_site: int, tool_body: int,
+                 gains: OSCGains = OSCGains(), q_null: np.ndarray | None = None):
+        self.model = model
+        self.tcp_site = tcp_site
+        self.tool_body = tool_body
+        nv = model.nv
+        self.jacp = np.zeros((3, nv))
+        self.jacr = np.zeros((3, nv))
+        self.M = np.zeros((nv, nv))
+        self.payload_jacp = np.zeros((3, nv))
+        self.payload_force = np.zeros(3)
+        self.tau = np.zeros(7)
+        self.gains = gains.as_array()
+        self.torque_limit = TORQUE_LIMITS.copy()
+        self.q_null = np.zeros(7) if q_null is None else np.asarray(q_null, float).copy()
+        self.target_pos = np.zeros(3)
+        self.target_mat = np.eye(3)
+        self.max_abs_tau = np.zeros(7)
+
+    def run(self, data: mujoco.MjData, n_substeps: int, payload_body: int = -1,
+            payload_mass: float = 0.0) -> None:
+        """Advance ``n_substeps`` physics steps tracking the current target."""
+        m = self.model
+        site = self.tcp_site
+        gravity = -m.opt.gravity
+        jacp, jacr, M, tau = self.jacp, self.jacr, self.M, self.tau
+        pj, pf = self.payload_jacp, self.payload_force
+        if payload_body < 0:
+            pj[:] = 0.0
+            pf[:] = 0.0
+        else:
+            pf[:] = payload_mass * gravity
+        xpos, xmat = data.site_xpos, data.site_xmat
+        for _ in range(n_substeps):
+            mujoco.mj_step1(m, data)
+            mujoco.mj_jacSite(m, data, jacp, jacr, site)
+            mujoco.mj_fullM(m, data, M)
+            if payload_body >= 0:
+                mujoco.mj_jac(m, data, pj, None, data.xipos[payload_body], self.tool_body)
+            osc_torque(jacp, jacr, M, data.qfrc_bias, data.qpos, data.qvel, xpos[site],
+                       xmat[site].reshape(3, 3), self.target_pos, self.target_mat, self.q_null,
+                       pj, pf, self.gains, self.torque_limit, tau)
+            data.ctrl[:] = tau
+            mujoco.mj_step2(m, data)
+            np.maximum(self.max_abs_tau, np.abs(tau), out=self.max_abs_tau)
