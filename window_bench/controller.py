@@ -19,7 +19,7 @@ import mujoco
 import numba
 import numpy as np
 
-from .scene import MAX_JOINT_VELOCITY, TORQUE_LIMITS
+from .scene import MAX_JOINT_VELOCITY, PHYSICS_PER_CONTROL, TORQUE_LIMITS
 
 
 @dataclass(frozen=True)
@@ -158,8 +158,8 @@ class OSC:
         self.max_abs_tau = np.zeros(7)
 
     def run(self, data: mujoco.MjData, n_substeps: int, payload_body: int = -1,
-            payload_mass: float = 0.0) -> None:
-        """Advance ``n_substeps`` physics steps tracking the current target."""
+            payload_mass: float = 0.0, hold: int = PHYSICS_PER_CONTROL) -> None:
+        """Advance ``n_substeps`` controller updates, each held for ``hold`` physics steps."""
         m = self.model
         site = self.tcp_site
         gravity = -m.opt.gravity
@@ -182,4 +182,39 @@ class OSC:
                        pj, pf, self.gains, self.torque_limit, tau)
             data.ctrl[:] = tau
             mujoco.mj_step2(m, data)
+            if hold > 1:  # zero-order hold of the torque for the remaining physics steps
+                mujoco.mj_step(m, data, hold - 1)
             np.maximum(self.max_abs_tau, np.abs(tau), out=self.max_abs_tau)
+
+
+def solve_ik(model: mujoco.MjModel, site: int, target_pos: np.ndarray, target_mat: np.ndarray,
+             q_seed: np.ndarray, iters: int = 300, tol: float = 1e-6) -> tuple[np.ndarray, float]:
+    """Damped least-squares IK for the 7 arm joints; returns (q, final pose error norm).
+
+    Used offline (reset postures), never inside the control loop.
+    """
+    data = mujoco.MjData(model)
+    q = np.array(q_seed, float)
+    lo, hi = model.jnt_range[:7, 0], model.jnt_range[:7, 1]
+    jacp = np.zeros((3, model.nv))
+    jacr = np.zeros((3, model.nv))
+    err = np.zeros(6)
+    quat_t = np.zeros(4)
+    mujoco.mju_mat2Quat(quat_t, np.ascontiguousarray(target_mat).ravel())
+    quat, quat_c, neg = np.zeros(4), np.zeros(4), np.zeros(4)
+    for _ in range(iters):
+        data.qpos[:7] = q
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        err[:3] = target_pos - data.site_xpos[site]
+        mujoco.mju_mat2Quat(quat, data.site_xmat[site])
+        mujoco.mju_negQuat(neg, quat)
+        mujoco.mju_mulQuat(quat_c, quat_t, neg)
+        mujoco.mju_quat2Vel(err[3:], quat_c, 1.0)
+        if np.linalg.norm(err) < tol:
+            break
+        mujoco.mj_jacSite(model, data, jacp, jacr, site)
+        J = np.vstack([jacp[:, :7], jacr[:, :7]])
+        dq = J.T @ np.linalg.solve(J @ J.T + 1e-4 * np.eye(6), err)
+        q = np.clip(q + np.clip(dq, -0.2, 0.2), lo, hi)
+    return q, float(np.linalg.norm(err))

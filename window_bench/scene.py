@@ -87,16 +87,20 @@ PANEL_THICKNESS = 0.04   # 40 mm frame depth
 PANEL_AREAL_DENSITY = 8.0  # kg/m^2 -> 2.0 kg for 0.5 x 0.5 m (see docs: torque margin)
 
 # ------------------------------------------------------------------------------ rack
-RACK_CENTER = np.array([0.55, 0.10])
+RACK_CENTER = np.array([0.72, 0.10])
 RACK_TILT_DEG = 15.0     # panel leans back 15 deg from vertical, face toward the robot
 RACK_LEDGE_Z = 0.12      # top of the ledge the panel stands on
 RACK_GAP = 0.02          # nominal gap panel<->rack: +-5 mm, +-2 deg perturbations never overlap
 
 CUP_PANEL_BIT = 2
 
-# Time.
-TIMESTEP = 0.002         # 500 Hz physics and OSC
-CONTROL_SUBSTEPS = 50    # 10 Hz policy
+# Time. Physics at 1 kHz: a contact solref time constant of 2 ms (the low end of Table 9)
+# is unstable at a 2 ms timestep (MuJoCo needs timeconst >= 2 x timestep; measured: a panel
+# resting on the floor flew off at 2.0 ms and was still at 2.5 ms). The OSC runs at 500 Hz
+# and holds its torque for two physics steps.
+TIMESTEP = 0.001
+PHYSICS_PER_CONTROL = 2
+CONTROL_SUBSTEPS = 50    # OSC updates per 10 Hz policy step
 
 
 @dataclass(frozen=True)
@@ -423,8 +427,10 @@ def build_spec(cfg: SceneConfig) -> mujoco.MjSpec:
     spec.option.impratio = 5
     spec.option.jacobian = mujoco.mjtJacobian.mjJAC_DENSE  # mujoco 4.0.0's sparse Cholesky bug
     spec.option.noslip_iterations = 0
-    # The solref time constant is randomized in [2, 4] ms at a 2 ms timestep: without this
-    # flag MuJoCo silently clamps it to 2 x timestep (4 ms) and the randomization is void.
+    # MuJoCo clamps solref time constants below 2 x timestep unless this flag is off. At a
+    # 1 ms timestep the clamp (2 ms) sits exactly at Table 9's lower bound; we turn it off so
+    # that no sampled value is ever silently replaced (tests/test_physics.py checks that the
+    # sampled time constant changes contact penetration).
     spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_REFSAFE
     spec.visual.global_.offwidth = 640
     spec.visual.global_.offheight = 480

@@ -1,0 +1,111 @@
+"""Task semantics read from named physical quantities: acceptance, stages, failure modes.
+
+Following dm_control's Physics/Task split, nothing here steps the simulator, so the
+acceptance test and the failure taxonomy are unit-testable on constructed situations.
+
+Acceptance (paper, Appendix "Success criteria"): panel centre within 2 mm of the seated
+target, cos(n_window, n_wall) > 0.95, panel speed < 1 cm/s.
+
+Failure taxonomy (one label per episode that does not end in acceptance):
+
+=====================  =====================================================================
+``never_acquired``     suction never latched (Experiment B).
+``suction_lost``       suction latched at some point but is not latched at the end.
+``approach_failed``    held, but the panel never entered the opening.
+``entry_wedging``      entered, stalled in contact with the buck at less than 35 % of the
+                       seating depth (binding/wedging at the entry edge).
+``mid_depth_jamming``  entered, stalled in contact deeper than 35 % but short of the stop.
+``unstable_seating``   reached the seating depth but never met all three acceptance criteria.
+``timeout``            entered or approached without a contact stall, horizon ran out.
+``sim_unstable``       physics diverged; the episode was truncated.
+=====================  =====================================================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+POSITION_TOL = 0.002        # m
+NORMAL_COS_MIN = 0.95
+SPEED_MAX = 0.01            # m/s
+ENTRY_DEPTH = 0.005         # front face this far past the wall face = insertion entered
+ENTRY_FRACTION = 0.35       # stalls shallower than this fraction of the seating depth = wedging
+SEATING_DEPTH_TOL = 0.004   # centre within this of the seating depth = reached the stop
+STALL_STEPS = 8             # contact stalls needed before a wedging/jamming label
+STALL_RATIO = 0.3           # realized / commanded translation below this = stalled
+
+FAILURE_MODES = ("never_acquired", "suction_lost", "approach_failed", "entry_wedging",
+                 "mid_depth_jamming", "unstable_seating", "timeout", "sim_unstable")
+
+
+@dataclass(frozen=True)
+class Acceptance:
+    position_error: float
+    normal_cos: float
+    speed: float
+
+    @property
+    def accepted(self) -> bool:
+        return (self.position_error < POSITION_TOL and self.normal_cos > NORMAL_COS_MIN
+                and self.speed < SPEED_MAX)
+
+
+def acceptance(panel_pos, panel_normal, panel_linvel, target_pos, wall_normal) -> Acceptance:
+    """The three acceptance criteria from named quantities (world frame, metres)."""
+    err = float(np.linalg.norm(np.asarray(panel_pos) - np.asarray(target_pos)))
+    n = np.asarray(panel_normal, float)
+    w = np.asarray(wall_normal, float)
+    cos = float(n @ w / (np.linalg.norm(n) * np.linalg.norm(w)))
+    return Acceptance(err, cos, float(np.linalg.norm(panel_linvel)))
+
+
+@dataclass
+class StageTracker:
+    """Stage events and the contact/motion history that the failure label is derived from."""
+
+    seated_depth: float
+    suction_acquired: bool = False
+    insertion_entered: bool = False
+    seated: bool = False
+    latched: bool = False
+    max_depth: float = -np.inf
+    stall_steps: int = 0
+    stall_depths: list = field(default_factory=list)
+
+    def update(self, *, latched: bool, depth: float, front_depth: float, in_opening: bool,
+               buck_contact: bool, commanded: float, realized: float, accepted: bool) -> None:
+        """One 10 Hz step. ``depth``/``front_depth``: panel centre / leading face past the
+        wall face along the insertion axis (m); ``in_opening``: the panel's centre lies within
+        the opening's footprint; ``commanded``/``realized``: TCP translation this step (m)."""
+        self.latched = latched
+        self.suction_acquired |= latched
+        if in_opening and front_depth > ENTRY_DEPTH:
+            self.insertion_entered = True
+        if self.insertion_entered:
+            self.max_depth = max(self.max_depth, depth)
+        if buck_contact and commanded > 0.004 and realized < STALL_RATIO * commanded:
+            self.stall_steps += 1
+            self.stall_depths.append(depth)
+        self.seated |= accepted
+
+    def failure_mode(self, sim_unstable: bool = False) -> str | None:
+        if self.seated:
+            return None
+        if sim_unstable:
+            return "sim_unstable"
+        if not self.suction_acquired:
+            return "never_acquired"
+        if not self.latched:
+            return "suction_lost"
+        if not self.insertion_entered:
+            return "approach_failed"
+        if self.max_depth >= self.seated_depth - SEATING_DEPTH_TOL:
+            return "unstable_seating"
+        if self.stall_steps >= STALL_STEPS:
+            deepest_stall = float(np.median(self.stall_depths[-STALL_STEPS:]))
+            if deepest_stall < ENTRY_FRACTION * self.seated_depth:
+                return "entry_wedging"
+            return "mid_depth_jamming"
+        return "timeout"
