@@ -147,8 +147,10 @@ class SceneConfig:
 
 
 # Panel body frame: z = suction-face normal (out of the face the cup holds), x along the
-# width, y along the height. Seated: z -> +y world (toward the robot), x -> +x, y -> +z.
-SEATED_PANEL_MAT = np.column_stack([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])  # cols = body axes
+# width, y along the height. Seated: z -> +y world (toward the robot), y -> +z (up), and
+# x -> -x so that the frame stays right-handed.
+SEATED_PANEL_MAT = np.column_stack([[-1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])  # cols = body axes
+assert np.isclose(np.linalg.det(SEATED_PANEL_MAT), 1.0)
 WALL_NORMAL = np.array([0.0, 1.0, 0.0])
 INSERTION_AXIS = -WALL_NORMAL
 

@@ -1,0 +1,438 @@
+"""Environment speed: env steps/s against raw MuJoCo physics of the same scene.
+
+Measures, in one run and side by side: every timed env step is immediately followed by
+its replays (b) and (c) on a private copy of the model, so machine noise hits every row
+alike; the state and pixel workloads alternate repeat by repeat.
+
+(a) state-mode env steps/s through ``gym.make`` (all default wrappers), with a "hold"
+    policy (zero motion, ``a[6] = 1`` keeps the panel on the cup) and a uniformly random
+    policy. Only ``env.step`` calls are timed; resets are excluded.
+(b) raw physics: ``mujoco.mj_step(model, data, 100)`` on a copy of the model, started from
+    the exact state (qpos, qvel, ctrl, warm start, suction weld and cup-contact switch) that
+    the env was in at the beginning of each timed env step, with that step's initial
+    ``ctrl`` held.
+    100 = ``CONTROL_SUBSTEPS * PHYSICS_PER_CONTROL`` physics steps per env step.
+    The ratio env-step time / raw-physics time is reported per repeat (median, min, max).
+(c) the controller alone: the 50 OSC updates of one env step (``mj_jacSite``,
+    ``mj_fullM``, the payload ``mj_jac`` while latched, the numba ``osc_torque`` and the
+    ``ctrl`` write) at each step's initial state, without stepping the physics; and the
+    substep loop ``OSC.run`` itself (physics + controller + Python loop), which splits the
+    env-step time into loop overhead and the 10 Hz env logic (observation, checks, wrappers).
+(d) pixel mode (``obs_mode="pixels"``, wrist + side cameras at ``--image-size``) steps/s.
+
+Usage::
+
+    MUJOCO_GL=egl python benchmarks/env_speed.py [--env WindowInstall-A-v0] [--steps 2000]
+        [--repeats 5] [--pixel-steps 100]
+
+Results go to ``benchmarks/results/env_speed.json`` (written atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # must precede the first mujoco import
+
+import gymnasium as gym  # noqa: E402
+import mujoco  # noqa: E402
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+
+import window_bench  # noqa: E402,F401  (registers the ids)
+from window_bench import scene as S  # noqa: E402
+from window_bench.controller import OSC, OSCGains, osc_torque  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+PHYS_PER_ENV_STEP = S.CONTROL_SUBSTEPS * S.PHYSICS_PER_CONTROL  # 100
+
+TARGET_STEPS_PER_S = 500.0
+TARGET_RATIO = 2.5
+
+
+# ---------------------------------------------------------------------------- metadata
+def hardware() -> dict:
+    model = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except AttributeError:
+        usable = os.cpu_count()
+    return {"cpu_model": model, "cpu_count": os.cpu_count(), "cpus_usable": usable,
+            "machine": platform.machine(), "os": platform.platform()}
+
+
+def versions() -> dict:
+    def pkg(name):
+        try:
+            from importlib.metadata import version
+            return version(name)
+        except Exception:
+            return None
+    return {"python": platform.python_version(), "mujoco": mujoco.__version__,
+            "mujoco_core": pkg("mujoco-core"), "mujoco_lib": mujoco.mj_versionString(),
+            "numpy": np.__version__, "numba": numba.__version__,
+            "gymnasium": gym.__version__, "window_bench": window_bench.__version__}
+
+
+def git_commit() -> dict:
+    def git(*args):
+        try:
+            return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True,
+                                  timeout=10).stdout.strip()
+        except Exception:
+            return ""
+    return {"commit": git("rev-parse", "HEAD") or None,
+            "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
+
+
+# ---------------------------------------------------------------------------- recording
+class Snapshot:
+    """The integration state at the start of one env step, plus what ``env.step`` set up
+    for its substep loop (OSC target, suction latch), read back after the step."""
+
+    __slots__ = ("qpos", "qvel", "act", "ctrl", "warm", "latched", "eq_data",
+                 "target_pos", "target_mat")
+
+    def __init__(self, d):
+        self.qpos = d.qpos.copy()
+        self.qvel = d.qvel.copy()
+        self.act = d.act.copy()
+        self.ctrl = d.ctrl.copy()
+        self.warm = d.qacc_warmstart.copy()
+
+    def complete(self, base, info):
+        # The latch is decided at the start of env.step; a holding-limit release happens
+        # after the substep loop (info["suction_failed"]), so the weld was on during it.
+        self.latched = bool(base.suction_engaged or info.get("suction_failed", False))
+        self.eq_data = base.model.eq_data[base.scene.suction_eq].copy()
+        self.target_pos = base.osc.target_pos.copy()
+        self.target_mat = base.osc.target_mat.copy()
+
+    def apply(self, m, d, sc):
+        d.qpos[:] = self.qpos
+        d.qvel[:] = self.qvel
+        d.act[:] = self.act
+        d.ctrl[:] = self.ctrl
+        d.qacc_warmstart[:] = self.warm
+        d.eq_active[sc.suction_eq] = self.latched
+        m.eq_data[sc.suction_eq] = self.eq_data
+        m.geom_contype[sc.cup_geom] = 0 if self.latched else S.CUP_PANEL_BIT
+
+
+def hold_action() -> np.ndarray:
+    a = np.zeros(7, np.float32)
+    a[6] = 1.0
+    return a
+
+
+class Replayer:
+    """Re-runs one env step's work on a private copy of the model and data.
+
+    ``raw``: ``mj_step(m, d, 100)`` with the step's initial ctrl held (pure physics).
+    ``controller``: the 50 OSC updates of ``OSC.run`` (``mj_jacSite``, ``mj_fullM``, the
+    payload ``mj_jac`` while latched, the numba ``osc_torque``, the ``ctrl`` write) at the
+    step's initial state, without stepping the physics.
+    ``loop``: ``OSC.run`` itself (physics + controller + the Python substep loop) with the
+    step's OSC target, without the rest of ``env.step``.
+    """
+
+    def __init__(self, base):
+        self.base = base
+        self.m = copy.copy(base.model)
+        self.d = mujoco.MjData(self.m)
+        sc = base.scene
+        self.sc = sc
+        self.mass = base.cfg.mass
+        self.osc = OSC(self.m, sc.tcp_site, sc.tool_body, OSCGains(), q_null=base.osc.q_null)
+        o = self.osc
+        self.jacp, self.jacr = np.zeros_like(o.jacp), np.zeros_like(o.jacr)
+        self.M, self.tau = np.zeros_like(o.M), np.zeros(7)
+        self.pj, self.pf = np.zeros_like(o.payload_jacp), np.zeros(3)
+
+    def sync_model(self):
+        """Per-episode randomized contact parameters (friction, solref) of the env's model."""
+        src, dst = self.base.model, self.m
+        dst.pair_friction[:] = src.pair_friction
+        dst.pair_solref[:] = src.pair_solref
+        dst.geom_friction[:] = src.geom_friction
+        dst.geom_solref[:] = src.geom_solref
+
+    def raw(self, s: Snapshot) -> float:
+        m, d = self.m, self.d
+        s.apply(m, d, self.sc)
+        t0 = time.perf_counter()
+        mujoco.mj_step(m, d, PHYS_PER_ENV_STEP)
+        return time.perf_counter() - t0
+
+    def controller(self, s: Snapshot) -> float:
+        m, d, sc, o = self.m, self.d, self.sc, self.osc
+        s.apply(m, d, self.sc)
+        mujoco.mj_step1(m, d)
+        site, tool, panel = sc.tcp_site, sc.tool_body, sc.panel_body
+        jacp, jacr, M, tau, pj, pf = self.jacp, self.jacr, self.M, self.tau, self.pj, self.pf
+        latched = s.latched
+        if latched:
+            pf[:] = self.mass * -m.opt.gravity
+        else:
+            pj[:] = 0.0
+            pf[:] = 0.0
+        tp, tm = s.target_pos, s.target_mat
+        gains, tlim, q_null = o.gains, o.torque_limit, o.q_null
+        xpos, xmat = d.site_xpos, d.site_xmat
+        t0 = time.perf_counter()
+        for _ in range(S.CONTROL_SUBSTEPS):
+            mujoco.mj_jacSite(m, d, jacp, jacr, site)
+            mujoco.mj_fullM(m, d, M)
+            if latched:
+                mujoco.mj_jac(m, d, pj, None, d.xipos[panel], tool)
+            osc_torque(jacp, jacr, M, d.qfrc_bias, d.qpos, d.qvel, xpos[site],
+                       xmat[site].reshape(3, 3), tp, tm, q_null, pj, pf, gains, tlim, tau)
+            d.ctrl[:] = tau
+        return time.perf_counter() - t0
+
+    def loop(self, s: Snapshot) -> float:
+        m, d, o = self.m, self.d, self.osc
+        s.apply(m, d, self.sc)
+        o.target_pos[:] = s.target_pos
+        o.target_mat[:] = s.target_mat
+        payload = self.sc.panel_body if s.latched else -1
+        t0 = time.perf_counter()
+        o.run(d, S.CONTROL_SUBSTEPS, payload_body=payload, payload_mass=self.mass)
+        return time.perf_counter() - t0
+
+
+def run_env(env, n_steps: int, policy: str, rng: np.random.Generator, seed: int,
+            replay: Replayer | None = None) -> dict:
+    """Time ``n_steps`` env.step calls (resets excluded). With ``replay``, each env step is
+    immediately followed by its raw-physics, controller and substep-loop replays, so all
+    four are timed side by side under the same machine load."""
+    base = env.unwrapped
+    hold = hold_action()
+    t = {"env": 0.0, "raw": 0.0, "ctrl": 0.0, "loop": 0.0}
+    resets = unstable = 0
+    perf = time.perf_counter
+    if replay is not None:
+        replay.sync_model()
+    for _ in range(n_steps):
+        a = hold if policy == "hold" else rng.uniform(-1.0, 1.0, 7).astype(np.float32)
+        snap = Snapshot(base.data) if replay is not None else None
+        t0 = perf()
+        _, _, term, trunc, info = env.step(a)
+        t["env"] += perf() - t0
+        if replay is not None:
+            snap.complete(base, info)
+            t["raw"] += replay.raw(snap)
+            t["ctrl"] += replay.controller(snap)
+            t["loop"] += replay.loop(snap)
+        if term or trunc:
+            unstable += bool(info.get("sim_unstable", False))
+            resets += 1
+            env.reset(seed=seed + resets)
+            if replay is not None:
+                replay.sync_model()
+    return {"times": t, "resets": resets, "unstable": unstable, "n": n_steps}
+
+
+def run_pixels(env, n_steps: int, seed: int) -> float:
+    hold = hold_action()
+    total = 0.0
+    resets = 0
+    perf = time.perf_counter
+    for _ in range(n_steps):
+        t0 = perf()
+        _, _, term, trunc, _ = env.step(hold)
+        total += perf() - t0
+        if term or trunc:
+            resets += 1
+            env.reset(seed=seed + resets)
+    return total
+
+
+# ---------------------------------------------------------------------------- stats
+def summary(values: list[float]) -> dict:
+    return {"median": statistics.median(values), "min": min(values), "max": max(values),
+            "values": values}
+
+
+def write_json_atomic(path: Path, payload: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(payload, f, indent=2)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--env", default="WindowInstall-A-v0")
+    p.add_argument("--steps", type=int, default=2000, help="timed env steps per repeat (state mode)")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--warmup", type=int, default=100, help="untimed env steps before timing")
+    p.add_argument("--pixel-steps", type=int, default=100,
+                   help="timed env steps per repeat in pixel mode (0 skips it)")
+    p.add_argument("--image-size", type=int, default=128)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "env_speed.json")
+    args = p.parse_args(argv)
+    if args.steps < 1 or args.repeats < 1:
+        p.error("--steps and --repeats must be >= 1")
+
+    hw, ver, git = hardware(), versions(), git_commit()
+    print(f"CPU: {hw['cpu_model']}  ({hw['cpus_usable']} usable of {hw['cpu_count']} cores, {hw['machine']})")
+    print("versions: " + ", ".join(f"{k} {v}" for k, v in ver.items()))
+    print(f"git: {git['commit']}{' (dirty)' if git['dirty'] else ''}")
+    print(f"env {args.env}: {args.steps} steps x {args.repeats} repeats; 1 env step = "
+          f"{S.CONTROL_SUBSTEPS} OSC updates x {S.PHYSICS_PER_CONTROL} physics steps of "
+          f"{S.TIMESTEP * 1e3:g} ms = {PHYS_PER_ENV_STEP} mj_step")
+
+    # -- set-up and warm-up (numba compilation / cache load happens in the first step)
+    envs = {}
+    rngs = {}
+    for k, policy in enumerate(("hold", "random")):
+        env = gym.make(args.env)
+        env.reset(seed=args.seed)
+        rngs[policy] = np.random.default_rng(args.seed + 1000 * k)
+        t0 = time.perf_counter()
+        env.step(hold_action())
+        first = time.perf_counter() - t0
+        run_env(env, args.warmup, policy, rngs[policy], args.seed)
+        envs[policy] = env
+        if policy == "hold":
+            print(f"first env.step (numba compile or cache load): {first * 1e3:.0f} ms")
+    replayers = {k: Replayer(e.unwrapped) for k, e in envs.items()}
+    penv = None
+    if args.pixel_steps > 0:
+        penv = gym.make(args.env, obs_mode="pixels", image_size=args.image_size)
+        penv.reset(seed=args.seed)
+        run_pixels(penv, 5, args.seed)  # creates the GL context and renderer
+
+    rows = {k: [] for k in ("env_hold", "env_random", "raw_hold", "raw_random",
+                            "ctrl_hold", "ctrl_random", "loop_hold", "loop_random", "ratio_hold", "ratio_random",
+                            "ratio_ctrl_hold", "pixels")}
+    meta = {"resets": {"hold": 0, "random": 0}, "sim_unstable_episodes": {"hold": 0, "random": 0}}
+    for rep in range(args.repeats):
+        for policy in ("hold", "random"):
+            r = run_env(envs[policy], args.steps, policy, rngs[policy], args.seed,
+                        replay=replayers[policy])
+            meta["resets"][policy] += r["resets"]
+            meta["sim_unstable_episodes"][policy] += r["unstable"]
+            t, n = r["times"], r["n"]
+            t_env, t_raw, t_ctrl = t["env"], t["raw"], t["ctrl"]
+            rows[f"env_{policy}"].append(t_env / n)
+            rows[f"raw_{policy}"].append(t_raw / n)
+            rows[f"ctrl_{policy}"].append(t_ctrl / n)
+            rows[f"loop_{policy}"].append(t["loop"] / n)
+            rows[f"ratio_{policy}"].append(t_env / t_raw)
+            if policy == "hold":
+                rows["ratio_ctrl_hold"].append(t_ctrl / t_raw)
+        if penv is not None:
+            rows["pixels"].append(run_pixels(penv, args.pixel_steps, args.seed) / args.pixel_steps)
+        print(f"  repeat {rep + 1}/{args.repeats}: hold {1 / rows['env_hold'][-1]:.0f} steps/s, "
+              f"ratio {rows['ratio_hold'][-1]:.2f}x raw"
+              + (f", pixels {1 / rows['pixels'][-1]:.1f} steps/s" if penv is not None else ""),
+              flush=True)
+    for e in envs.values():
+        e.close()
+    if penv is not None:
+        penv.close()
+
+    # -- table
+    def per_s(xs):
+        return summary([1.0 / x for x in xs])
+
+    def ms(xs):
+        return summary([x * 1e3 for x in xs])
+
+    table = [
+        ("state env steps/s, hold (a[6]=1)", per_s(rows["env_hold"]), "steps/s"),
+        ("state env steps/s, random actions", per_s(rows["env_random"]), "steps/s"),
+        ("env step time, hold", ms(rows["env_hold"]), "ms"),
+        ("raw physics (100 mj_step), hold states", ms(rows["raw_hold"]), "ms"),
+        ("ratio env / raw physics, hold", summary(rows["ratio_hold"]), "x"),
+        ("env step time, random", ms(rows["env_random"]), "ms"),
+        ("raw physics (100 mj_step), random states", ms(rows["raw_random"]), "ms"),
+        ("ratio env / raw physics, random", summary(rows["ratio_random"]), "x"),
+        ("controller alone (50 OSC updates), hold", ms(rows["ctrl_hold"]), "ms"),
+        ("controller alone (50 OSC updates), random", ms(rows["ctrl_random"]), "ms"),
+        ("controller / raw physics, hold", summary(rows["ratio_ctrl_hold"]), "x"),
+        ("controller per OSC update, hold",
+         summary([x * 1e6 / S.CONTROL_SUBSTEPS for x in rows["ctrl_hold"]]), "us"),
+        ("raw physics per mj_step, hold",
+         summary([x * 1e6 / PHYS_PER_ENV_STEP for x in rows["raw_hold"]]), "us"),
+    ]
+    # Breakdown of one env step (hold): substep loop = physics + controller + loop
+    # overhead (the mj_step1/mj_step2 split and the Python calls per substep); the rest of
+    # env.step is the 10 Hz env logic (action, latch checks, observation, wrappers).
+    table.append(("OSC.run replay (physics+controller loop), hold", ms(rows["loop_hold"]), "ms"))
+    loop_over = [lp - r - c for lp, r, c in zip(rows["loop_hold"], rows["raw_hold"], rows["ctrl_hold"])]
+    table.append(("  of which loop overhead (loop - raw - ctrl)", ms(loop_over), "ms"))
+    logic = [e - lp for e, lp in zip(rows["env_hold"], rows["loop_hold"])]
+    table.append(("env logic outside OSC.run (env - loop), hold", ms(logic), "ms"))
+    if rows["pixels"]:
+        table.append((f"pixel env steps/s ({args.image_size}px wrist+side)", per_s(rows["pixels"]), "steps/s"))
+        table.append(("pixel env step time", ms(rows["pixels"]), "ms"))
+
+    w = max(len(r[0]) for r in table)
+    print()
+    print(f"{'measurement':<{w}}  {'median':>10}  {'min':>10}  {'max':>10}  unit")
+    print("-" * (w + 45))
+    for name, s, unit in table:
+        print(f"{name:<{w}}  {s['median']:>10.3f}  {s['min']:>10.3f}  {s['max']:>10.3f}  {unit}")
+
+    sps = statistics.median(1.0 / x for x in rows["env_hold"])
+    ratio = statistics.median(rows["ratio_hold"])
+    checks = {
+        f"state steps/s (hold) >= {TARGET_STEPS_PER_S:g}": sps >= TARGET_STEPS_PER_S,
+        f"env/raw ratio (hold) <= {TARGET_RATIO:g}": ratio <= TARGET_RATIO,
+    }
+    print()
+    for k, v in checks.items():
+        print(f"target {k}: {'PASS' if v else 'FAIL'}")
+    print(f"resets during timing: {meta['resets']}; sim_unstable episodes: {meta['sim_unstable_episodes']}")
+
+    payload = {
+        "benchmark": "env_speed",
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "hardware": hw, "versions": ver, "git": git,
+        "physics_steps_per_env_step": PHYS_PER_ENV_STEP,
+        "timestep_s": S.TIMESTEP,
+        "results": {name: {**s, "unit": unit} for name, s, unit in table},
+        "raw_seconds_per_step": rows,
+        "targets": {"steps_per_s_min": TARGET_STEPS_PER_S, "ratio_max": TARGET_RATIO,
+                    "checks": checks},
+        **meta,
+        "command": " ".join([sys.executable, *sys.argv]),
+    }
+    write_json_atomic(args.out, payload)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

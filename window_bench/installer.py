@@ -1,0 +1,255 @@
+"""Reference controllers that act through the normalized 7-D action interface.
+
+* ``ScriptedInstaller`` - the privileged expert that stands in for the installer: it reads
+  simulator state (panel pose, the in-hand grasp transform) but acts only through
+  ``env.step(action)``, so its logs are valid demonstrations. Phases: acquire (B), lift,
+  transport, align, insert compliantly, detect stalls (wedging, jamming) and recover with
+  retract-pivot-reinsert, seat and settle.
+* ``StraightPush`` - the naive controller: it assumes the nominal grasp, aligns the tool to
+  where the nominal grasp would put a seated panel, pushes straight in and never recovers.
+* ``RandomPolicy`` - uniform random actions.
+
+All three have ``reset()`` and ``act(obs) -> np.ndarray`` of shape (7,).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import scene as S
+from .env import POS_SCALE, ROT_SCALE, WindowInstallEnv, mat_to_rotvec
+
+ENGAGE, RELEASE = 1.0, -1.0
+
+
+def pose_action(tcp_pos, tcp_mat, des_pos, des_mat, *, max_lin=1.0, max_rot=1.0,
+                vacuum=ENGAGE) -> np.ndarray:
+    """Action that moves the TCP toward a desired pose, increments capped per step.
+
+    The cap keeps the direction: a vector longer than the cap is scaled, not clipped
+    per axis, so straight-line motion stays straight."""
+    lin = tcp_mat.T @ (np.asarray(des_pos) - tcp_pos) / POS_SCALE
+    rot = mat_to_rotvec(tcp_mat.T @ des_mat) / ROT_SCALE
+    for v, cap in ((lin, max_lin), (rot, max_rot)):
+        n = np.abs(v).max()
+        if n > cap:
+            v *= cap / n
+    return np.concatenate([lin, rot, [vacuum]]).astype(np.float32)
+
+
+class _PanelPoseMixin:
+    """Converts a desired panel pose into the TCP pose that realizes it."""
+
+    env: WindowInstallEnv
+
+    def _tcp_for_panel_pose(self, grasp, panel_pos, panel_mat):
+        rel_pos, rel_mat = grasp          # TCP pose in the panel frame
+        return panel_pos + panel_mat @ rel_pos, panel_mat @ rel_mat
+
+    def _measured_grasp(self):
+        p_pos, p_mat = self.env.panel_pose()
+        t_pos, t_mat = self.env.tcp_pose()
+        return p_mat.T @ (t_pos - p_pos), p_mat.T @ t_mat
+
+
+class ScriptedInstaller(_PanelPoseMixin):
+    """Privileged expert installer (see module docstring)."""
+
+    # Distances in metres along the wall normal (toward the robot) from the seated pose.
+    STAGING_OFFSET = 0.25
+    PREINSERT_OFFSET = 0.03
+    ALIGN_POS_TOL = 0.0003
+    ALIGN_ROT_TOL = np.deg2rad(0.1)
+    INSERT_SPEED = 0.004        # m per step
+    STALL_WINDOW = 3
+    STALL_PROGRESS = 0.25       # realized / commanded depth progress below this = stall
+    RETRACT = 0.012
+    MAX_RECOVERIES = 8
+
+    def __init__(self, env):
+        self.env = env.unwrapped
+        self.reset()
+
+    def reset(self) -> None:
+        self.phase = None
+        self.depth_hist: list[float] = []
+        self.recoveries = 0
+        self.phase_steps = 0
+        self.pivot_sign = 1.0
+        self.events: list[tuple[int, str]] = []
+        self.t = 0
+
+    # -------------------------------------------------------------- helpers
+    def _set(self, phase: str) -> None:
+        if phase != self.phase:
+            self.events.append((self.t, phase))
+        self.phase = phase
+        self.phase_steps = 0
+
+    def _seated(self):
+        return self.env.seated_pose
+
+    def _depth(self) -> float:
+        p, _ = self.env.panel_pose()
+        target, _ = self._seated()
+        return float((p - target) @ S.INSERTION_AXIS)   # 0 at the seat, < 0 outside
+
+    def _panel_goal_action(self, panel_pos, panel_mat, *, max_lin=1.0, max_rot=1.0):
+        tcp_pos, tcp_mat = self.env.tcp_pose()
+        des = self._tcp_for_panel_pose(self._measured_grasp(), panel_pos, panel_mat)
+        return pose_action(tcp_pos, tcp_mat, *des, max_lin=max_lin, max_rot=max_rot)
+
+    def _panel_error(self, panel_pos, panel_mat):
+        p, R = self.env.panel_pose()
+        return float(np.linalg.norm(p - panel_pos)), float(np.linalg.norm(mat_to_rotvec(R.T @ panel_mat)))
+
+    # -------------------------------------------------------------- policy
+    def act(self, obs=None) -> np.ndarray:
+        if self.phase is None:
+            self._set("lift" if self.env.suction_engaged else "approach")
+            self.lift_start = self.env.panel_pose()[0].copy()
+        a = getattr(self, f"_{self.phase}")()
+        self.t += 1
+        self.phase_steps += 1
+        return a
+
+    def _approach(self):
+        """B: hover 8 cm above the suction face, tool normal to it."""
+        p, R = self.env.panel_pose()
+        tcp_pos, tcp_mat = self.env.tcp_pose()
+        face, tool = self.env._tcp_for_panel(p, R)
+        hover = face + R[:, 2] * 0.08
+        if np.linalg.norm(tcp_pos - hover) < 0.004 and np.linalg.norm(mat_to_rotvec(tcp_mat.T @ tool)) < 0.02:
+            self._set("descend")
+        return pose_action(tcp_pos, tcp_mat, hover, tool, vacuum=RELEASE)
+
+    def _descend(self):
+        p, R = self.env.panel_pose()
+        tcp_pos, tcp_mat = self.env.tcp_pose()
+        face, tool = self.env._tcp_for_panel(p, R)
+        goal = face + R[:, 2] * 0.002
+        close = float((tcp_pos - face) @ R[:, 2]) < 0.006
+        if self.env.suction_engaged:
+            self._set("lift")
+            self.lift_start = p.copy()
+        return pose_action(tcp_pos, tcp_mat, goal, tool, max_lin=0.4,
+                           vacuum=ENGAGE if close else RELEASE)
+
+    def _lift(self):
+        """Clear the ground or the rack: straight up (and off the rack's backrest)."""
+        p, R = self.env.panel_pose()
+        goal = self.lift_start + np.array([0, 0, 0.45 - self.lift_start[2]])
+        if self.env.cfg.experiment == "A":
+            goal = goal + np.array([-0.10, 0, 0])
+        if np.linalg.norm(p - goal) < 0.02 or self.phase_steps > 40:
+            self._set("transport")
+        return self._panel_goal_action(goal, R, max_rot=0.0)
+
+    def _transport(self):
+        target, tmat = self._seated()
+        goal = target + S.WALL_NORMAL * self.STAGING_OFFSET
+        e_pos, e_rot = self._panel_error(goal, tmat)
+        if e_pos < 0.01 and e_rot < np.deg2rad(1.0):
+            self._set("align")
+        return self._panel_goal_action(goal, tmat, max_lin=1.0, max_rot=1.0)
+
+    def _align(self):
+        target, tmat = self._seated()
+        goal = target + S.WALL_NORMAL * self.PREINSERT_OFFSET
+        e_pos, e_rot = self._panel_error(goal, tmat)
+        if (e_pos < self.ALIGN_POS_TOL * 3 and e_rot < self.ALIGN_ROT_TOL) or self.phase_steps > 60:
+            self._set("insert")
+            self.depth_hist = []
+        return self._panel_goal_action(goal, tmat, max_lin=0.6, max_rot=0.3)
+
+    def _insert(self):
+        target, tmat = self._seated()
+        depth = self._depth()
+        self.depth_hist.append(depth)
+        if depth > -0.0015:
+            self._set("seat")
+            return self._seat_action()
+        # Stall: progress over the last few steps well below what was commanded.
+        if len(self.depth_hist) > self.STALL_WINDOW:
+            progress = self.depth_hist[-1] - self.depth_hist[-1 - self.STALL_WINDOW]
+            if progress < self.STALL_PROGRESS * self.INSERT_SPEED * self.STALL_WINDOW:
+                if self.recoveries < self.MAX_RECOVERIES:
+                    self.recoveries += 1
+                    self.retract_to = depth - self.RETRACT
+                    self._set("recover")
+                    return self._recover()
+        goal = target + S.INSERTION_AXIS * (depth + self.INSERT_SPEED)
+        return self._panel_goal_action(goal, tmat, max_lin=0.5, max_rot=0.2)
+
+    def _recover(self):
+        """Retract along the axis while re-squaring the panel (pivot), then reinsert."""
+        target, tmat = self._seated()
+        depth = self._depth()
+        goal = target + S.INSERTION_AXIS * self.retract_to
+        e_pos, e_rot = self._panel_error(goal, tmat)
+        if (e_pos < 0.001 and e_rot < self.ALIGN_ROT_TOL * 2) or self.phase_steps > 25:
+            self._set("insert")
+            self.depth_hist = []
+        return self._panel_goal_action(goal, tmat, max_lin=0.4, max_rot=0.3)
+
+    def _seat_action(self):
+        target, tmat = self._seated()
+        # Aim 1 mm past the seat so the front face stays against the stop, then hold.
+        goal = target + S.INSERTION_AXIS * 0.001
+        return self._panel_goal_action(goal, tmat, max_lin=0.2, max_rot=0.2)
+
+    def _seat(self):
+        """Hold the panel against the stop until the env accepts the seating."""
+        return self._seat_action()
+
+
+class StraightPush:
+    """Naive baseline: align the tool to the nominal target, push straight, no recovery."""
+
+    def __init__(self, env):
+        self.env = env.unwrapped
+        self._acquire = ScriptedInstaller(env)
+        self.reset()
+
+    def reset(self) -> None:
+        self._acquire.reset()
+        self.phase = None
+
+    def act(self, obs=None) -> np.ndarray:
+        env = self.env
+        target, tmat = env.seated_pose
+        # Where the TCP would be for a seated panel held exactly at the nominal grasp.
+        tcp_seat, tcp_mat_seat = env._tcp_for_panel(target, tmat)
+        tcp_pos, tcp_mat = env.tcp_pose()
+        if self.phase is None:
+            self.phase = "acquire"
+        if self.phase == "acquire":
+            if env.suction_engaged and self._acquire.phase not in ("approach", "descend", None):
+                self.phase = "pre"
+            else:
+                a = self._acquire.act()
+                return a
+        if self.phase == "pre":
+            goal = tcp_seat + S.WALL_NORMAL * 0.10
+            if np.linalg.norm(tcp_pos - goal) < 0.002 and np.linalg.norm(mat_to_rotvec(tcp_mat.T @ tcp_mat_seat)) < 0.005:
+                self.phase = "push"
+            return pose_action(tcp_pos, tcp_mat, goal, tcp_mat_seat)
+        # Push: keep the nominal line and orientation, advance 5 mm per step past the seat.
+        depth = float((tcp_pos - tcp_seat) @ S.INSERTION_AXIS)
+        goal = tcp_seat + S.INSERTION_AXIS * min(depth + 0.005, 0.002)
+        return pose_action(tcp_pos, tcp_mat, goal, tcp_mat_seat, max_lin=0.4)
+
+
+class RandomPolicy:
+    def __init__(self, env, seed: int | None = None):
+        self.rng = np.random.default_rng(seed)
+        self.space = env.action_space
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, obs=None) -> np.ndarray:
+        return self.rng.uniform(-1.0, 1.0, 7).astype(np.float32)
+
+
+CONTROLLERS = {"installer": ScriptedInstaller, "straight_push": StraightPush, "random": RandomPolicy}
