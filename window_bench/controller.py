@@ -30,14 +30,15 @@ class OSCGains:
     kp_rot: float = 1600.0
     damping_ratio: float = 1.0
     kp_null: float = 10.0
-    vel_limit_margin: float = 0.9     # limiter acts above this fraction of 1.92 rad/s
+    kd_null: float = 40.0             # 1/s: damps internal (self-motion) of the redundant arm
+    vel_limit_margin: float = 0.85    # governor and brakes act up to this fraction of 1.92 rad/s
     vel_limit_gain: float = 60.0      # 1/s, per unit joint inertia
 
     def as_array(self) -> np.ndarray:
         return np.array([
             self.kp_pos, 2 * self.damping_ratio * np.sqrt(self.kp_pos),
             self.kp_rot, 2 * self.damping_ratio * np.sqrt(self.kp_rot),
-            self.kp_null, 2 * np.sqrt(self.kp_null),
+            self.kp_null, self.kd_null,
             self.vel_limit_margin * MAX_JOINT_VELOCITY, self.vel_limit_gain,
         ])
 
@@ -104,10 +105,25 @@ def osc_torque(jacp, jacr, M, bias, q, qd, pos, mat, target_pos, target_mat,
         err[4] += 0.5 * (a2 * b0 - a0 * b2)
         err[5] += 0.5 * (a0 * b1 - a1 * b0)
     vel = J @ qd[:n].copy()
+    # Velocity governor: as the fastest joint approaches the limit, fade out the task-space
+    # spring (keep its damping), so the arm stops accelerating instead of relying on joint
+    # brakes that the wrist's 12 N m cannot supply.
+    ratio = 0.0
+    for i in range(n):
+        ratio = max(ratio, abs(qd[i]) / vlim)
+    s = min(max((1.0 - ratio) / 0.3, 0.0), 1.0)  # 1 below 70 % of vlim, 0 at vlim
+    # Saturate the spring's error so that the approach speed is capped (kp e_max / kd):
+    # 0.4 m/s and 1.0 rad/s, enough to realize most of a 25 mm / 5 deg increment in 0.1 s.
+    lin_norm = np.sqrt(err[0] ** 2 + err[1] ** 2 + err[2] ** 2)
+    rot_norm = np.sqrt(err[3] ** 2 + err[4] ** 2 + err[5] ** 2)
+    lin_cap = 0.4 * kd / kp
+    rot_cap = 1.0 * kdr / kpr
+    lin_s = 1.0 if lin_norm <= lin_cap else lin_cap / lin_norm
+    rot_s = 1.0 if rot_norm <= rot_cap else rot_cap / rot_norm
     acc = np.empty(6)
     for i in range(3):
-        acc[i] = kp * err[i] - kd * vel[i]
-        acc[3 + i] = kpr * err[3 + i] - kdr * vel[3 + i]
+        acc[i] = s * kp * lin_s * err[i] - kd * vel[i]
+        acc[3 + i] = s * kpr * rot_s * err[3 + i] - kdr * vel[3 + i]
     L = _cholesky(Mr)
     MinvJT = _chol_solve(L, J.T.copy())           # 7 x 6
     JMJ = J @ MinvJT                               # 6 x 6
@@ -124,14 +140,28 @@ def osc_torque(jacp, jacr, M, bias, q, qd, pos, mat, target_pos, target_mat,
     t_null = Mr @ qacc_null
     Jbar = MinvJT @ Lam                            # 7 x 6
     t_null = t_null - J.T @ (Jbar.T @ t_null)
+    # Everything but the task term, with the velocity brakes.
+    rest = np.empty(n)
     for i in range(n):
-        t = tau[i] + t_null[i] + bias[i]
+        t = t_null[i] + bias[i]
         for k in range(3):
             t += payload_jac[k, i] * payload_force[k]
         # Velocity limiter: strong viscous braking above the margin (no native limit in MuJoCo).
         over = abs(qd[i]) - vlim
         if over > 0:
             t -= np.sign(qd[i]) * over * vgain * Mr[i, i] * 10.0
+        rest[i] = t
+    # Scale the task torque uniformly so that no joint saturates: a saturated joint would
+    # break the operational-space decoupling and excite the arm's self-motion.
+    scale = 1.0
+    for i in range(n):
+        if tau[i] > 1e-9:
+            scale = min(scale, (torque_limit[i] - rest[i]) / tau[i])
+        elif tau[i] < -1e-9:
+            scale = min(scale, (-torque_limit[i] - rest[i]) / tau[i])
+    scale = max(scale, 0.0)
+    for i in range(n):
+        t = scale * tau[i] + rest[i]
         out[i] = min(max(t, -torque_limit[i]), torque_limit[i])
 
 

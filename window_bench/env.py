@@ -94,7 +94,7 @@ class WindowInstallEnv(gym.Env):
 
     **Observation.** ``obs_mode="state"`` (default) is a Dict of ``STATE_KEYS``;
     ``"pixels"`` is ``wrist_rgb`` and ``side_rgb`` (128x128x3 uint8) plus ``robot0_proprio``;
-    ``"flat"`` is the state Dict concatenated in ``STATE_KEYS`` order (56 floats).
+    ``"flat"`` is the state Dict concatenated in ``STATE_KEYS`` order (52 floats).
 
     **Randomizations** (Table 9, independent per episode from the reset seed): buck,
     window/frame and cup friction, contact solref time constant, and the panel pose (A: +-5 mm,
@@ -200,10 +200,10 @@ class WindowInstallEnv(gym.Env):
         super().reset(seed=seed)
         m, d, sc, rng = self.model, self.data, self.scene, self.np_random
         r = {k: float(rng.uniform(*v)) for k, v in RANDOMIZATION_RANGES.items()}
-        m.pair_friction[sc.pairs["buck"], 0] = r["friction_buck"]
-        m.pair_friction[sc.pairs["buck"], 1] = r["friction_buck"] * 0.005
-        m.pair_friction[sc.pairs["window"], 0] = r["friction_window"]
-        m.pair_friction[sc.pairs["window"], 1] = r["friction_window"] * 0.005
+        m.pair_friction[sc.pairs["buck"], :2] = r["friction_buck"]
+        m.pair_friction[sc.pairs["buck"], 2] = r["friction_buck"] * 0.005
+        m.pair_friction[sc.pairs["window"], :2] = r["friction_window"]
+        m.pair_friction[sc.pairs["window"], 2] = r["friction_window"] * 0.005
         m.geom_friction[sc.tool_geoms, 0] = r["friction_cup"]
         m.pair_solref[:, 0] = r["solref_timeconst"]
         m.geom_solref[:, 0] = r["solref_timeconst"]
@@ -341,7 +341,7 @@ class WindowInstallEnv(gym.Env):
         self._steps += 1
         unstable = (int(d.warning.number.sum()) > self._warnings
                     or not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel)))
-                    or float(np.abs(d.qvel).max()) > 50.0)
+                    or float(np.abs(d.qvel).max()) > 20.0)  # 20 m/s or rad/s: no real motion here
         if unstable:
             self._warnings = int(d.warning.number.sum())
             d.qpos[:], d.qvel[:] = qpos0, qvel0
@@ -373,10 +373,12 @@ class WindowInstallEnv(gym.Env):
         reward = 1.0 if terminated else 0.0
         info = self._info(acc)
         info["suction_failed"] = suction_failed
+        # The label this episode gets if it ends now: valid on whichever step a wrapper
+        # (e.g. gym.make(..., max_episode_steps=N)) or the env's own horizon ends it.
+        info["failure_mode"] = self._stages.failure_mode(self._sim_unstable) or ""
+        info["is_success"] = bool(terminated)
         if terminated or truncated:
             self._needs_reset = True
-            info["failure_mode"] = self._stages.failure_mode(self._sim_unstable)
-            info["is_success"] = bool(terminated)
         return self._observation(), reward, terminated, truncated, info
 
     # ------------------------------------------------------------------ quantities
@@ -420,6 +422,10 @@ class WindowInstallEnv(gym.Env):
             "panel_speed": acc.speed,
             "cycle_time_s": self._steps * CONTROL_DT,
             "sim_unstable": self._sim_unstable if hasattr(self, "_sim_unstable") else False,
+            # The same keys at reset and at every step (Minari requires it).
+            "suction_failed": False,
+            "failure_mode": "",
+            "is_success": False,
         }
 
     def _observation(self):

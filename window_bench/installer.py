@@ -203,41 +203,59 @@ class ScriptedInstaller(_PanelPoseMixin):
         return self._seat_action()
 
 
-class StraightPush:
-    """Naive baseline: align the tool to the nominal target, push straight, no recovery."""
+class StraightPush(_PanelPoseMixin):
+    """Naive baseline: align to the nominal target once, push straight, no recovery.
 
-    def __init__(self, env):
+    It acquires and transports like the installer, then aligns the panel with the seated
+    pose only until the error is within ``align_tol`` (a single coarse check, as a scripted
+    cell would do), and from then on pushes along the tool axis with constant increments.
+    The OSC target is re-based on the measured pose every step, so contact deflections are
+    kept, never corrected: there is no stall detection and no retract-pivot-reinsert.
+    """
+
+    PUSH = 0.2   # x 0.025 m = 5 mm per step along the tool axis
+
+    def __init__(self, env, align_error_mm: float = 2.0, align_error_deg: float = 1.0,
+                 seed: int | None = None):
         self.env = env.unwrapped
-        self._acquire = ScriptedInstaller(env)
+        self.align_error = (align_error_mm / 1000.0, np.deg2rad(align_error_deg))
+        self.rng = np.random.default_rng(seed)
+        self._transport = ScriptedInstaller(env)
         self.reset()
 
-    def reset(self) -> None:
-        self._acquire.reset()
+    def reset(self, seed: int | None = None) -> None:
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+        self._transport.reset()
         self.phase = None
+        self.align_steps = 0
+        e_lin, e_rot = self.align_error
+        target, tmat = self.env.seated_pose
+        lateral = np.array([self.rng.uniform(-e_lin, e_lin), 0.0, self.rng.uniform(-e_lin, e_lin)])
+        self.goal = target + S.WALL_NORMAL * ScriptedInstaller.PREINSERT_OFFSET * 2 + lateral
+        from .env import rotvec_to_mat
+        self.goal_mat = rotvec_to_mat(self.rng.uniform(-e_rot, e_rot, 3)) @ tmat
 
     def act(self, obs=None) -> np.ndarray:
-        env = self.env
-        target, tmat = env.seated_pose
-        # Where the TCP would be for a seated panel held exactly at the nominal grasp.
-        tcp_seat, tcp_mat_seat = env._tcp_for_panel(target, tmat)
-        tcp_pos, tcp_mat = env.tcp_pose()
         if self.phase is None:
-            self.phase = "acquire"
-        if self.phase == "acquire":
-            if env.suction_engaged and self._acquire.phase not in ("approach", "descend", None):
-                self.phase = "pre"
+            self.phase = "transport"
+        if self.phase == "transport":
+            if self._transport.phase == "align":
+                self.phase = "align"
             else:
-                a = self._acquire.act()
-                return a
-        if self.phase == "pre":
-            goal = tcp_seat + S.WALL_NORMAL * 0.10
-            if np.linalg.norm(tcp_pos - goal) < 0.002 and np.linalg.norm(mat_to_rotvec(tcp_mat.T @ tcp_mat_seat)) < 0.005:
+                return self._transport.act()
+        if self.phase == "align":
+            self.align_steps += 1
+            p, R = self.env.panel_pose()
+            if ((np.linalg.norm(p - self.goal) < 0.0005
+                    and np.linalg.norm(mat_to_rotvec(R.T @ self.goal_mat)) < np.deg2rad(0.15))
+                    or self.align_steps > 40):
                 self.phase = "push"
-            return pose_action(tcp_pos, tcp_mat, goal, tcp_mat_seat)
-        # Push: keep the nominal line and orientation, advance 5 mm per step past the seat.
-        depth = float((tcp_pos - tcp_seat) @ S.INSERTION_AXIS)
-        goal = tcp_seat + S.INSERTION_AXIS * min(depth + 0.005, 0.002)
-        return pose_action(tcp_pos, tcp_mat, goal, tcp_mat_seat, max_lin=0.4)
+            else:
+                tcp_pos, tcp_mat = self.env.tcp_pose()
+                des = self._tcp_for_panel_pose(self._measured_grasp(), self.goal, self.goal_mat)
+                return pose_action(tcp_pos, tcp_mat, *des, max_lin=0.6, max_rot=0.3)
+        return np.array([0, 0, self.PUSH, 0, 0, 0, ENGAGE], dtype=np.float32)
 
 
 class RandomPolicy:

@@ -73,9 +73,10 @@ TOOL_MASS = 0.6
 
 # ------------------------------------------------------------------------------ wall
 WALL_Y = 0.66            # wall face at y = -WALL_Y (outside the ground region, |y|<=0.61)
-WALL_THICKNESS = 0.10    # depth of the wood buck
+WALL_THICKNESS = 0.14    # depth of the wood buck
 BUCK_THICKNESS = 0.02    # lining boards
-STOP_DEPTH = 0.08        # back stop strips start this far behind the wall face
+BUCK_CHAMFER = 0.005     # 45-degree eased entry edge of the lining boards
+STOP_DEPTH = 0.10        # back stop strips start this far behind the wall face
 STOP_LIP = 0.015         # how far the stop strips reach into the opening
 OPENING_CENTER_X = 0.35
 OPENING_CENTER_Z = 0.60
@@ -83,7 +84,8 @@ WALL_HALF_WIDTH = 0.9    # wall extends +-0.9 m in x around the opening centre
 WALL_HEIGHT = 1.4
 
 # ----------------------------------------------------------------------------- panel
-PANEL_THICKNESS = 0.04   # 40 mm frame depth
+PANEL_THICKNESS = 0.08   # 80 mm frame depth: deep enough that a tilted panel can wedge
+                         # (w cos t + d sin t > w + 2c needs d > sqrt(4 c w) = 63 mm at w = 0.5 m)
 PANEL_AREAL_DENSITY = 8.0  # kg/m^2 -> 2.0 kg for 0.5 x 0.5 m (see docs: torque margin)
 
 # ------------------------------------------------------------------------------ rack
@@ -198,7 +200,8 @@ STOP_RGBA = (0.35, 0.35, 0.38, 1)
 ROBOT_RGBA = (0.93, 0.45, 0.1, 1)
 GLASS = (0.55, 0.75, 0.9, 0.75)
 
-BUCK_GEOMS = ("buck_sill", "buck_head", "buck_jamb_left", "buck_jamb_right")
+BUCK_GEOMS = ("buck_sill", "buck_head", "buck_jamb_left", "buck_jamb_right",
+              "buck_bevel_sill", "buck_bevel_head", "buck_bevel_jamb_left", "buck_bevel_jamb_right")
 STOP_GEOMS = ("stop_sill", "stop_head", "stop_left", "stop_right")
 WALL_GEOMS = ("wall_below", "wall_above", "wall_left", "wall_right")
 RACK_GEOMS = ("rack_ledge", "rack_back")
@@ -236,11 +239,28 @@ def _build_arena(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
     _add_box(wall, "wall_left", [lw, ht, (z_in_t - z_in_b) / 2], [xl + lw, yc, (z_in_b + z_in_t) / 2], WALL_RGBA)
     rw = (xr - x_in_r) / 2
     _add_box(wall, "wall_right", [rw, ht, (z_in_t - z_in_b) / 2], [x_in_r + rw, yc, (z_in_b + z_in_t) / 2], WALL_RGBA)
-    # Wood buck lining: its inner faces bound the opening with `clearance` per side.
-    _add_box(wall, "buck_sill", [ow / 2 + b, ht, b / 2], [cx, yc, cz - oh / 2 - b / 2], WOOD)
-    _add_box(wall, "buck_head", [ow / 2 + b, ht, b / 2], [cx, yc, cz + oh / 2 + b / 2], WOOD)
-    _add_box(wall, "buck_jamb_left", [b / 2, ht, oh / 2], [cx - ow / 2 - b / 2, yc, cz], WOOD)
-    _add_box(wall, "buck_jamb_right", [b / 2, ht, oh / 2], [cx + ow / 2 + b / 2, yc, cz], WOOD)
+    # Wood buck lining: its inner faces bound the opening with `clearance` per side; the
+    # boards stop BUCK_CHAMFER short of the wall face where a 45-degree bevel eases the edge.
+    ch = BUCK_CHAMFER
+    bd = (WALL_THICKNESS - ch) / 2
+    yb = -WALL_Y - ch - bd
+    boards = (  # name, centre, half sizes, inward normal, long axis, half length, face point
+        ("buck_sill", [cx, yb, cz - oh / 2 - b / 2], [ow / 2 + b, bd, b / 2], [0, 0, 1.0], [1.0, 0, 0], ow / 2 + b, [cx, 0, cz - oh / 2]),
+        ("buck_head", [cx, yb, cz + oh / 2 + b / 2], [ow / 2 + b, bd, b / 2], [0, 0, -1.0], [1.0, 0, 0], ow / 2 + b, [cx, 0, cz + oh / 2]),
+        ("buck_jamb_left", [cx - ow / 2 - b / 2, yb, cz], [b / 2, bd, oh / 2], [1.0, 0, 0], [0, 0, 1.0], oh / 2, [cx - ow / 2, 0, cz]),
+        ("buck_jamb_right", [cx + ow / 2 + b / 2, yb, cz], [b / 2, bd, oh / 2], [-1.0, 0, 0], [0, 0, 1.0], oh / 2, [cx + ow / 2, 0, cz]),
+    )
+    bevel_half = 0.004
+    for gname, center, half, n_in, axis, half_len, face in boards:
+        _add_box(wall, gname, half, center, WOOD)
+        n_in, axis, face = np.array(n_in), np.array(axis), np.array(face, float)
+        n_out = (n_in + WALL_NORMAL) / np.sqrt(2)
+        p1 = face - ch * n_in + np.array([0, -WALL_Y, 0])
+        p2 = face + np.array([0, -WALL_Y - ch, 0])
+        c = (p1 + p2) / 2 - bevel_half * n_out
+        rot = np.column_stack([axis, np.cross(n_out, axis), n_out])
+        _add_box(wall, gname.replace("buck_", "buck_bevel_"), [half_len, ch / np.sqrt(2), bevel_half],
+                 c, WOOD, quat=_quat_from_mat(rot))
     # Back stop: strips behind STOP_DEPTH that narrow the opening by STOP_LIP.
     sd = (WALL_THICKNESS - STOP_DEPTH) / 2
     ys = -WALL_Y - STOP_DEPTH - sd

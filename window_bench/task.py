@@ -19,6 +19,13 @@ Failure taxonomy (one label per episode that does not end in acceptance):
 ``timeout``            entered or approached without a contact stall, horizon ran out.
 ``sim_unstable``       physics diverged; the episode was truncated.
 =====================  =====================================================================
+
+The env reports ``failure_mode = ""`` for an accepted episode and on every step before the
+last one.
+
+The seated target is the centre of the opening. A panel released onto the sill rests the
+full clearance (2 mm) low and is therefore *not* accepted: like an installer who shims and
+centres a window, the robot must hold the panel centred until acceptance.
 """
 
 from __future__ import annotations
