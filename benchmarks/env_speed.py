@@ -1,23 +1,28 @@
 """Environment speed: env steps/s against raw MuJoCo physics of the same scene.
 
-Measures, in one run and side by side: every timed env step is immediately followed by
-its replays (b) and (c) on a private copy of the model, so machine noise hits every row
-alike; the state and pixel workloads alternate repeat by repeat.
+Measures, in one run and side by side; every block below runs in every repeat, so slow
+phases of a shared machine hit all rows, and MEDIANS over repeats are reported.
 
 (a) state-mode env steps/s through ``gym.make`` (all default wrappers), with a "hold"
     policy (zero motion, ``a[6] = 1`` keeps the panel on the cup) and a uniformly random
-    policy. Only ``env.step`` calls are timed; resets are excluded.
+    policy. Only ``env.step`` calls are timed; resets are excluded. Each policy runs twice
+    per repeat: a plain loop of env steps followed by plain loops of the replays (b) and
+    (c) of the same steps (the headline numbers), and an interleaved loop in which each
+    env step is immediately followed by its replays (same machine load for env and raw
+    physics, but the replays evict the env's data from the CPU caches, which makes the
+    env step slower than in a plain loop).
 (b) raw physics: ``mujoco.mj_step(model, data, 100)`` on a copy of the model, started from
     the exact state (qpos, qvel, ctrl, warm start, suction weld and cup-contact switch) that
     the env was in at the beginning of each timed env step, with that step's initial
     ``ctrl`` held.
     100 = ``CONTROL_SUBSTEPS * PHYSICS_PER_CONTROL`` physics steps per env step.
-    The ratio env-step time / raw-physics time is reported per repeat (median, min, max).
+    The ratio env-step time / raw-physics time is taken per repeat (median, min, max).
 (c) the controller alone: the 50 OSC updates of one env step (``mj_jacSite``,
     ``mj_fullM``, the payload ``mj_jac`` while latched, the numba ``osc_torque`` and the
-    ``ctrl`` write) at each step's initial state, without stepping the physics; and the
-    substep loop ``OSC.run`` itself (physics + controller + Python loop), which splits the
-    env-step time into loop overhead and the 10 Hz env logic (observation, checks, wrappers).
+    ``ctrl`` write) at each step's initial state, without stepping the physics. The time
+    the env spends inside its own ``OSC.run`` (physics + controller + the Python substep
+    loop) is timed too, which splits an env step into physics, controller, substep-loop
+    overhead and the 10 Hz env logic (action, suction checks, observation, wrappers).
 (d) pixel mode (``obs_mode="pixels"``, wrist + side cameras at ``--image-size``) steps/s.
 
 Usage::
@@ -149,8 +154,6 @@ class Replayer:
     ``controller``: the 50 OSC updates of ``OSC.run`` (``mj_jacSite``, ``mj_fullM``, the
     payload ``mj_jac`` while latched, the numba ``osc_torque``, the ``ctrl`` write) at the
     step's initial state, without stepping the physics.
-    ``loop``: ``OSC.run`` itself (physics + controller + the Python substep loop) with the
-    step's OSC target, without the rest of ``env.step``.
     """
 
     def __init__(self, base):
@@ -207,46 +210,58 @@ class Replayer:
             d.ctrl[:] = tau
         return time.perf_counter() - t0
 
-    def loop(self, s: Snapshot) -> float:
-        m, d, o = self.m, self.d, self.osc
-        s.apply(m, d, self.sc)
-        o.target_pos[:] = s.target_pos
-        o.target_mat[:] = s.target_mat
-        payload = self.sc.panel_body if s.latched else -1
-        t0 = time.perf_counter()
-        o.run(d, S.CONTROL_SUBSTEPS, payload_body=payload, payload_mass=self.mass)
-        return time.perf_counter() - t0
-
 
 def run_env(env, n_steps: int, policy: str, rng: np.random.Generator, seed: int,
-            replay: Replayer | None = None) -> dict:
-    """Time ``n_steps`` env.step calls (resets excluded). With ``replay``, each env step is
-    immediately followed by its raw-physics, controller and substep-loop replays, so all
-    four are timed side by side under the same machine load."""
+            replay: Replayer | None = None, interleave: bool = False) -> dict:
+    """Time ``n_steps`` env.step calls (resets excluded) and the time spent inside the env's
+    own ``OSC.run``. With ``replay``, the raw-physics and controller replays of the same
+    steps are timed too: right after each env step (``interleave=True``, same machine
+    load, but the replays evict the env's data from the caches) or as separate plain loops
+    after all env steps (``interleave=False``)."""
     base = env.unwrapped
     hold = hold_action()
-    t = {"env": 0.0, "raw": 0.0, "ctrl": 0.0, "loop": 0.0}
-    resets = unstable = 0
+    t = {"env": 0.0, "osc_run": 0.0, "raw": 0.0, "ctrl": 0.0}
     perf = time.perf_counter
+    osc = base.osc
+    inner = osc.run
+
+    def timed_run(*a, **k):  # shadows the bound method on this instance only
+        t0 = perf()
+        inner(*a, **k)
+        t["osc_run"] += perf() - t0
+
+    osc.run = timed_run
     if replay is not None:
         replay.sync_model()
-    for _ in range(n_steps):
-        a = hold if policy == "hold" else rng.uniform(-1.0, 1.0, 7).astype(np.float32)
-        snap = Snapshot(base.data) if replay is not None else None
-        t0 = perf()
-        _, _, term, trunc, info = env.step(a)
-        t["env"] += perf() - t0
-        if replay is not None:
-            snap.complete(base, info)
-            t["raw"] += replay.raw(snap)
-            t["ctrl"] += replay.controller(snap)
-            t["loop"] += replay.loop(snap)
-        if term or trunc:
-            unstable += bool(info.get("sim_unstable", False))
-            resets += 1
-            env.reset(seed=seed + resets)
+    snaps = []
+    resets = unstable = 0
+    try:
+        for _ in range(n_steps):
+            a = hold if policy == "hold" else rng.uniform(-1.0, 1.0, 7).astype(np.float32)
+            snap = Snapshot(base.data) if replay is not None else None
+            t0 = perf()
+            _, _, term, trunc, info = env.step(a)
+            t["env"] += perf() - t0
             if replay is not None:
-                replay.sync_model()
+                snap.complete(base, info)
+                if interleave:
+                    t["raw"] += replay.raw(snap)
+                    t["ctrl"] += replay.controller(snap)
+                else:
+                    snaps.append(snap)
+            if term or trunc:
+                unstable += bool(info.get("sim_unstable", False))
+                resets += 1
+                env.reset(seed=seed + resets)
+                if replay is not None and interleave:
+                    replay.sync_model()
+    finally:
+        del osc.run
+    if snaps:
+        # Contact parameters of the last episode for all replays: they change the contact
+        # forces, not the cost of a step.
+        t["raw"] = sum(replay.raw(s) for s in snaps)
+        t["ctrl"] = sum(replay.controller(s) for s in snaps)
     return {"times": t, "resets": resets, "unstable": unstable, "n": n_steps}
 
 
@@ -331,29 +346,25 @@ def main(argv=None) -> int:
         penv.reset(seed=args.seed)
         run_pixels(penv, 5, args.seed)  # creates the GL context and renderer
 
-    rows = {k: [] for k in ("env_hold", "env_random", "raw_hold", "raw_random",
-                            "ctrl_hold", "ctrl_random", "loop_hold", "loop_random", "ratio_hold", "ratio_random",
-                            "ratio_ctrl_hold", "pixels")}
+    keys = ("env", "osc_run", "raw", "ctrl")
+    rows = {f"{mode}_{k}_{policy}": [] for mode in ("plain", "inter") for k in keys
+            for policy in ("hold", "random")}
+    rows["pixels"] = []
     meta = {"resets": {"hold": 0, "random": 0}, "sim_unstable_episodes": {"hold": 0, "random": 0}}
     for rep in range(args.repeats):
         for policy in ("hold", "random"):
-            r = run_env(envs[policy], args.steps, policy, rngs[policy], args.seed,
-                        replay=replayers[policy])
-            meta["resets"][policy] += r["resets"]
-            meta["sim_unstable_episodes"][policy] += r["unstable"]
-            t, n = r["times"], r["n"]
-            t_env, t_raw, t_ctrl = t["env"], t["raw"], t["ctrl"]
-            rows[f"env_{policy}"].append(t_env / n)
-            rows[f"raw_{policy}"].append(t_raw / n)
-            rows[f"ctrl_{policy}"].append(t_ctrl / n)
-            rows[f"loop_{policy}"].append(t["loop"] / n)
-            rows[f"ratio_{policy}"].append(t_env / t_raw)
-            if policy == "hold":
-                rows["ratio_ctrl_hold"].append(t_ctrl / t_raw)
+            for mode in ("plain", "inter"):
+                r = run_env(envs[policy], args.steps, policy, rngs[policy], args.seed,
+                            replay=replayers[policy], interleave=(mode == "inter"))
+                meta["resets"][policy] += r["resets"]
+                meta["sim_unstable_episodes"][policy] += r["unstable"]
+                for k in keys:
+                    rows[f"{mode}_{k}_{policy}"].append(r["times"][k] / r["n"])
         if penv is not None:
             rows["pixels"].append(run_pixels(penv, args.pixel_steps, args.seed) / args.pixel_steps)
-        print(f"  repeat {rep + 1}/{args.repeats}: hold {1 / rows['env_hold'][-1]:.0f} steps/s, "
-              f"ratio {rows['ratio_hold'][-1]:.2f}x raw"
+        ratio = rows["plain_env_hold"][-1] / rows["plain_raw_hold"][-1]
+        print(f"  repeat {rep + 1}/{args.repeats}: hold {1 / rows['plain_env_hold'][-1]:.0f} steps/s, "
+              f"ratio {ratio:.2f}x raw"
               + (f", pixels {1 / rows['pixels'][-1]:.1f} steps/s" if penv is not None else ""),
               flush=True)
     for e in envs.values():
@@ -368,31 +379,35 @@ def main(argv=None) -> int:
     def ms(xs):
         return summary([x * 1e3 for x in xs])
 
+    def ratio(a, b):
+        return summary([x / y for x, y in zip(rows[a], rows[b])])
+
+    R = rows
     table = [
-        ("state env steps/s, hold (a[6]=1)", per_s(rows["env_hold"]), "steps/s"),
-        ("state env steps/s, random actions", per_s(rows["env_random"]), "steps/s"),
-        ("env step time, hold", ms(rows["env_hold"]), "ms"),
-        ("raw physics (100 mj_step), hold states", ms(rows["raw_hold"]), "ms"),
-        ("ratio env / raw physics, hold", summary(rows["ratio_hold"]), "x"),
-        ("env step time, random", ms(rows["env_random"]), "ms"),
-        ("raw physics (100 mj_step), random states", ms(rows["raw_random"]), "ms"),
-        ("ratio env / raw physics, random", summary(rows["ratio_random"]), "x"),
-        ("controller alone (50 OSC updates), hold", ms(rows["ctrl_hold"]), "ms"),
-        ("controller alone (50 OSC updates), random", ms(rows["ctrl_random"]), "ms"),
-        ("controller / raw physics, hold", summary(rows["ratio_ctrl_hold"]), "x"),
-        ("controller per OSC update, hold",
-         summary([x * 1e6 / S.CONTROL_SUBSTEPS for x in rows["ctrl_hold"]]), "us"),
-        ("raw physics per mj_step, hold",
-         summary([x * 1e6 / PHYS_PER_ENV_STEP for x in rows["raw_hold"]]), "us"),
+        ("state env steps/s, hold (a[6]=1)", per_s(R["plain_env_hold"]), "steps/s"),
+        ("state env steps/s, random actions", per_s(R["plain_env_random"]), "steps/s"),
     ]
-    # Breakdown of one env step (hold): substep loop = physics + controller + loop
-    # overhead (the mj_step1/mj_step2 split and the Python calls per substep); the rest of
-    # env.step is the 10 Hz env logic (action, latch checks, observation, wrappers).
-    table.append(("OSC.run replay (physics+controller loop), hold", ms(rows["loop_hold"]), "ms"))
-    loop_over = [lp - r - c for lp, r, c in zip(rows["loop_hold"], rows["raw_hold"], rows["ctrl_hold"])]
-    table.append(("  of which loop overhead (loop - raw - ctrl)", ms(loop_over), "ms"))
-    logic = [e - lp for e, lp in zip(rows["env_hold"], rows["loop_hold"])]
-    table.append(("env logic outside OSC.run (env - loop), hold", ms(logic), "ms"))
+    for policy in ("hold", "random"):
+        for mode, label in (("plain", "plain loops"), ("inter", "interleaved")):
+            p = f"_{policy}"
+            table += [
+                (f"[{policy}, {label}] env step", ms(R[f"{mode}_env{p}"]), "ms"),
+                (f"[{policy}, {label}] raw physics, 100 mj_step", ms(R[f"{mode}_raw{p}"]), "ms"),
+                (f"[{policy}, {label}] ratio env / raw physics", ratio(f"{mode}_env{p}", f"{mode}_raw{p}"), "x"),
+                (f"[{policy}, {label}] controller alone, 50 updates", ms(R[f"{mode}_ctrl{p}"]), "ms"),
+                (f"[{policy}, {label}] OSC.run inside env.step", ms(R[f"{mode}_osc_run{p}"]), "ms"),
+                (f"[{policy}, {label}] substep-loop overhead",
+                 ms([o - r - c for o, r, c in zip(R[f"{mode}_osc_run{p}"], R[f"{mode}_raw{p}"], R[f"{mode}_ctrl{p}"])]), "ms"),
+                (f"[{policy}, {label}] env logic outside OSC.run",
+                 ms([e - o for e, o in zip(R[f"{mode}_env{p}"], R[f"{mode}_osc_run{p}"])]), "ms"),
+            ]
+    table += [
+        ("controller / raw physics (hold, plain)", ratio("plain_ctrl_hold", "plain_raw_hold"), "x"),
+        ("controller per OSC update (hold, plain)",
+         summary([x * 1e6 / S.CONTROL_SUBSTEPS for x in R["plain_ctrl_hold"]]), "us"),
+        ("raw physics per mj_step (hold, plain)",
+         summary([x * 1e6 / PHYS_PER_ENV_STEP for x in R["plain_raw_hold"]]), "us"),
+    ]
     if rows["pixels"]:
         table.append((f"pixel env steps/s ({args.image_size}px wrist+side)", per_s(rows["pixels"]), "steps/s"))
         table.append(("pixel env step time", ms(rows["pixels"]), "ms"))
@@ -404,8 +419,8 @@ def main(argv=None) -> int:
     for name, s, unit in table:
         print(f"{name:<{w}}  {s['median']:>10.3f}  {s['min']:>10.3f}  {s['max']:>10.3f}  {unit}")
 
-    sps = statistics.median(1.0 / x for x in rows["env_hold"])
-    ratio = statistics.median(rows["ratio_hold"])
+    sps = statistics.median(1.0 / x for x in rows["plain_env_hold"])
+    ratio = statistics.median(x / y for x, y in zip(rows["plain_env_hold"], rows["plain_raw_hold"]))
     checks = {
         f"state steps/s (hold) >= {TARGET_STEPS_PER_S:g}": sps >= TARGET_STEPS_PER_S,
         f"env/raw ratio (hold) <= {TARGET_RATIO:g}": ratio <= TARGET_RATIO,

@@ -218,10 +218,13 @@ class OSC:
 
 
 def solve_ik(model: mujoco.MjModel, site: int, target_pos: np.ndarray, target_mat: np.ndarray,
-             q_seed: np.ndarray, iters: int = 300, tol: float = 1e-6) -> tuple[np.ndarray, float]:
+             q_seed: np.ndarray, iters: int = 500, tol: float = 1e-6,
+             q_rest: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """Damped least-squares IK for the 7 arm joints; returns (q, final pose error norm).
 
-    Used offline (reset postures), never inside the control loop.
+    ``q_rest``: the arm is redundant; the nullspace of the task pulls toward this posture
+    so that the solution is the natural one (elbow up, wrist untwisted), not a twisted
+    branch. Used offline (reset postures), never inside the control loop.
     """
     data = mujoco.MjData(model)
     q = np.array(q_seed, float)
@@ -241,10 +244,13 @@ def solve_ik(model: mujoco.MjModel, site: int, target_pos: np.ndarray, target_ma
         mujoco.mju_negQuat(neg, quat)
         mujoco.mju_mulQuat(quat_c, quat_t, neg)
         mujoco.mju_quat2Vel(err[3:], quat_c, 1.0)
-        if np.linalg.norm(err) < tol:
+        if np.linalg.norm(err) < tol and q_rest is None:
             break
         mujoco.mj_jacSite(model, data, jacp, jacr, site)
         J = np.vstack([jacp[:, :7], jacr[:, :7]])
-        dq = J.T @ np.linalg.solve(J @ J.T + 1e-4 * np.eye(6), err)
+        Jpinv = J.T @ np.linalg.inv(J @ J.T + 1e-4 * np.eye(6))
+        dq = Jpinv @ err
+        if q_rest is not None:
+            dq += (np.eye(7) - Jpinv @ J) @ (0.1 * (q_rest - q))
         q = np.clip(q + np.clip(dq, -0.2, 0.2), lo, hi)
     return q, float(np.linalg.norm(err))

@@ -176,13 +176,21 @@ class WindowInstallEnv(gym.Env):
     def _postures(self) -> None:
         """Reset postures by IK, computed once per geometry."""
         m, site = self.model, self.scene.tcp_site
-        seed = np.array([0.0, 0.5, 0.0, -1.5, 0.0, 0.9, 0.0])
+        # Natural postures (elbow up, wrist untwisted): the IK's nullspace pulls toward a
+        # hand-picked rest posture, so that the start, staging and seated postures belong to
+        # one family and the wrist never has to wind through its joint limits.
+        rest_seat = np.array([-1.1, 0.6, 0.0, -1.3, 0.0, 1.2, 0.0])
+        self.q_seat, err = solve_ik(m, site, *self._tcp_for_panel(self._target_pos, self._target_mat),
+                                    q_seed=rest_seat, q_rest=rest_seat)
         if self.cfg.experiment == "A":
             center, mat = S.rack_panel_pose(self.cfg)
-            self.q_start, err = solve_ik(m, site, *self._tcp_for_panel(center, mat), q_seed=seed)
+            # Seeded from the seated posture: the wrist then unwinds the same way it winds.
+            self.q_start, err = solve_ik(m, site, *self._tcp_for_panel(center, mat),
+                                         q_seed=self.q_seat, q_rest=self.q_seat)
         else:
-            down = np.column_stack([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])
-            self.q_start, err = solve_ik(m, site, np.array([0.45, 0.0, 0.35]), down, q_seed=seed)
+            down = np.column_stack([[-1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]])  # tool z down
+            rest = np.array([0.0, 0.5, 0.0, -1.5, 0.0, 1.1, 0.0])
+            self.q_start, err = solve_ik(m, site, np.array([0.45, 0.0, 0.35]), down, q_seed=rest, q_rest=rest)
         # The nullspace PD holds the elbow swivel of the start posture; it acts only in the
         # one-dimensional nullspace of the 6-D task, so it never fights the pose target.
         self.q_null = self.q_start.copy()
@@ -190,9 +198,11 @@ class WindowInstallEnv(gym.Env):
             raise RuntimeError(f"reset posture unreachable (IK error {err:.2e}) for {self.cfg}")
 
     def _tcp_for_panel(self, center: np.ndarray, mat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nominal grasp: TCP at the suction-face centre, tool z into the face, tool x = panel x."""
+        """Nominal grasp: TCP at the suction-face centre, tool z into the face, tool y along
+        the panel's height (so a panel lying with its width along +x is picked with the
+        wrist untwisted from the home posture)."""
         face = center + mat[:, 2] * self.cfg.panel_thickness / 2
-        tool = np.column_stack([mat[:, 0], -mat[:, 1], -mat[:, 2]])
+        tool = np.column_stack([-mat[:, 0], mat[:, 1], -mat[:, 2]])
         return face, tool
 
     # ------------------------------------------------------------------ reset

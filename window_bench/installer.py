@@ -146,8 +146,14 @@ class ScriptedInstaller(_PanelPoseMixin):
         return self._panel_goal_action(goal, R, max_rot=0.0)
 
     def _transport(self):
+        """Reorient well clear of the wall, then bring the panel square to the staging pose."""
         target, tmat = self._seated()
         goal = target + S.WALL_NORMAL * self.STAGING_OFFSET
+        _, e_rot = self._panel_error(goal, tmat)
+        if e_rot > np.deg2rad(3.0):
+            # A tilted 0.5 m panel sweeps ~0.25 sin(tilt) toward the wall: reorient higher up
+            # (moving it toward the robot instead would fold the elbow onto its J4 limit).
+            goal = goal + np.array([0.0, 0.0, 0.12])
         e_pos, e_rot = self._panel_error(goal, tmat)
         if e_pos < 0.01 and e_rot < np.deg2rad(1.0):
             self._set("align")

@@ -149,9 +149,10 @@ class SceneConfig:
 
 
 # Panel body frame: z = suction-face normal (out of the face the cup holds), x along the
-# width, y along the height. Seated: z -> +y world (toward the robot), y -> +z (up), and
-# x -> -x so that the frame stays right-handed.
-SEATED_PANEL_MAT = np.column_stack([[-1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])  # cols = body axes
+# width, y along the height. Seated: z -> +y world (toward the robot), x -> +x along the
+# wall, y -> -z. This is the panel lying on the ground (z up, x ~ +x) tilted up by a single
+# -90 deg turn about x, so picking from the ground never winds the wrist through its limits.
+SEATED_PANEL_MAT = np.column_stack([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # cols = body axes
 assert np.isclose(np.linalg.det(SEATED_PANEL_MAT), 1.0)
 WALL_NORMAL = np.array([0.0, 1.0, 0.0])
 INSERTION_AXIS = -WALL_NORMAL
@@ -168,10 +169,12 @@ def rack_panel_pose(cfg: SceneConfig) -> tuple[np.ndarray, np.ndarray]:
     tilt = np.deg2rad(RACK_TILT_DEG)
     # Face normal points toward the robot (-x) and up; the panel leans back onto the rack.
     normal = np.array([-np.cos(tilt), 0.0, np.sin(tilt)])
-    up = np.array([np.sin(tilt), 0.0, np.cos(tilt)])     # panel height direction
-    width = np.array([0.0, -1.0, 0.0])                    # x_body, right-handed with z=normal
-    mat = np.column_stack([width, up, normal])
-    assert np.allclose(np.cross(width, up), normal)
+    up = np.array([np.sin(tilt), 0.0, np.cos(tilt)])     # along the panel, up the rack
+    width = np.array([0.0, 1.0, 0.0])
+    # Body y points down the rack: the staged frame is the seated frame turned 90 deg about
+    # the vertical and leaned back, so the transport is one turn plus the lean.
+    mat = np.column_stack([width, -up, normal])
+    assert np.allclose(np.cross(width, -up), normal)
     h, t = cfg.panel_height, cfg.panel_thickness
     # Bottom-back edge rests RACK_GAP above the ledge and RACK_GAP in front of the backrest.
     center = np.array([RACK_CENTER[0], RACK_CENTER[1], RACK_LEDGE_Z + RACK_GAP])
