@@ -89,7 +89,7 @@ def test_suction_engage_latch_release_on_B(seed, make_env):
     obs, info = env.reset(seed=seed)
     assert not u.suction_engaged and obs["robot0_vacuum"][0] == 0.0
     # Tool z points down at the B reset.
-    np.testing.assert_allclose(u.tcp_pose()[1][:, 2], [0, 0, -1], atol=1e-6)
+    np.testing.assert_allclose(u.tcp_pose()[1][:, 2], [0, 0, -1], atol=1e-4)
     panel0 = u.panel_pose()
     face = _face(env)
 
@@ -152,8 +152,11 @@ def test_suction_latched_at_reset_on_A_and_release(make_env):
     assert not u.suction_engaged and obs["robot0_vacuum"][0] == 0.0
     # Released, the panel drops onto the rack ledge (RACK_GAP below it) and leaves the cup.
     assert u.panel_pose()[0][2] < p0[2] - 0.01
+    # Back the cup 25 mm off along the tool axis: out of the snap distance, g = 1 must not
+    # re-engage.
+    obs, *_ = env.step(np.array([0, 0, -1.0, 0, 0, 0, -1.0], dtype=np.float32))
     obs, *_ = env.step(HOLD)
-    assert not u.suction_engaged   # out of the snap distance: no re-engagement
+    assert not u.suction_engaged
 
 
 # ----------------------------------------------------------------------------- friction
