@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import scene as S
-from .env import POS_SCALE, ROT_SCALE, WindowInstallEnv, mat_to_rotvec
+from .env import POS_SCALE, ROT_SCALE, WindowInstallEnv, mat_to_rotvec, rotvec_to_mat
 
 ENGAGE, RELEASE = 1.0, -1.0
 
@@ -56,8 +56,8 @@ class ScriptedInstaller(_PanelPoseMixin):
     """Privileged expert installer (see module docstring)."""
 
     # Distances in metres along the wall normal (toward the robot) from the seated pose.
-    STAGING_OFFSET = 0.25
-    PREINSERT_OFFSET = 0.03
+    STAGING_OFFSET = 0.30
+    PREINSERT_OFFSET = S.STOP_DEPTH + 0.02   # leading face 2 cm in front of the wall face
     ALIGN_POS_TOL = 0.0003
     ALIGN_ROT_TOL = np.deg2rad(0.1)
     INSERT_SPEED = 0.004        # m per step
@@ -66,11 +66,24 @@ class ScriptedInstaller(_PanelPoseMixin):
     RETRACT = 0.012
     MAX_RECOVERIES = 8
 
-    def __init__(self, env):
+    def __init__(self, env, align_error_mm: float = 0.0, align_error_deg: float = 0.0,
+                 seed: int | None = None):
+        """``align_error_*``: half-widths of a per-episode error in the installer's estimate
+        of where the seat is (lateral, and rotation about each axis) - an imperfect eye.
+        Contact stalls reveal it: each recovery re-measures and shrinks it 4-fold."""
+        if align_error_mm < 0 or align_error_deg < 0:
+            raise ValueError(f"alignment errors must be >= 0, got {align_error_mm} mm, {align_error_deg} deg")
         self.env = env.unwrapped
+        self.align_error = (align_error_mm / 1000.0, np.deg2rad(align_error_deg))
+        self.rng = np.random.default_rng(seed)
         self.reset()
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+        e_lin, e_rot = self.align_error
+        self.err_pos = np.array([self.rng.uniform(-e_lin, e_lin), 0.0, self.rng.uniform(-e_lin, e_lin)])
+        self.err_rot = self.rng.uniform(-e_rot, e_rot, 3)
         self.phase = None
         self.depth_hist: list[float] = []
         self.recoveries = 0
@@ -87,7 +100,13 @@ class ScriptedInstaller(_PanelPoseMixin):
         self.phase_steps = 0
 
     def _seated(self):
-        return self.env.seated_pose
+        """Where the installer believes the seat is (the true seat plus its estimate error)."""
+        target, tmat = self.env.seated_pose
+        return target + self.err_pos, rotvec_to_mat(self.err_rot) @ tmat
+
+    def _remeasure(self) -> None:
+        self.err_pos *= 0.25
+        self.err_rot *= 0.25
 
     def _depth(self) -> float:
         p, _ = self.env.panel_pose()
@@ -180,23 +199,32 @@ class ScriptedInstaller(_PanelPoseMixin):
             progress = self.depth_hist[-1] - self.depth_hist[-1 - self.STALL_WINDOW]
             if progress < self.STALL_PROGRESS * self.INSERT_SPEED * self.STALL_WINDOW:
                 if self.recoveries < self.MAX_RECOVERIES:
-                    self.recoveries += 1
-                    self.retract_to = depth - self.RETRACT
-                    self._set("recover")
-                    return self._recover()
+                    return self._start_recovery(depth)
         goal = target + S.INSERTION_AXIS * (depth + self.INSERT_SPEED)
         return self._panel_goal_action(goal, tmat, max_lin=0.5, max_rot=0.2)
 
+    def _start_recovery(self, depth: float):
+        self.recoveries += 1
+        self.retract_to = depth - self.RETRACT
+        self._remeasure()
+        self._set("recover")
+        return self._recover()
+
     def _recover(self):
-        """Retract along the axis while re-squaring the panel (pivot), then reinsert."""
+        """Retract along the axis holding the panel's current attitude (pulling or twisting a
+        bound panel would peel the cup off), then re-square it (pivot), then reinsert."""
         target, tmat = self._seated()
         depth = self._depth()
+        if depth > self.retract_to + 0.001 and self.phase_steps <= 15:
+            p, R = self.env.panel_pose()
+            goal = p + S.INSERTION_AXIS * (self.retract_to - depth)
+            return self._panel_goal_action(goal, R, max_lin=0.16, max_rot=0.0)
         goal = target + S.INSERTION_AXIS * self.retract_to
         e_pos, e_rot = self._panel_error(goal, tmat)
-        if (e_pos < 0.001 and e_rot < self.ALIGN_ROT_TOL * 2) or self.phase_steps > 25:
+        if (e_pos < 0.001 and e_rot < self.ALIGN_ROT_TOL * 2) or self.phase_steps > 40:
             self._set("insert")
             self.depth_hist = []
-        return self._panel_goal_action(goal, tmat, max_lin=0.4, max_rot=0.3)
+        return self._panel_goal_action(goal, tmat, max_lin=0.3, max_rot=0.2)
 
     def _seat_action(self):
         target, tmat = self._seated()
@@ -205,7 +233,10 @@ class ScriptedInstaller(_PanelPoseMixin):
         return self._panel_goal_action(goal, tmat, max_lin=0.2, max_rot=0.2)
 
     def _seat(self):
-        """Hold the panel against the stop until the env accepts the seating."""
+        """Hold the panel against the stop until the env accepts the seating; if it does not
+        settle into acceptance (off-centre, tilted), back off and re-seat."""
+        if self.phase_steps > 15 and self.recoveries < self.MAX_RECOVERIES:
+            return self._start_recovery(self._depth())
         return self._seat_action()
 
 
@@ -238,7 +269,7 @@ class StraightPush(_PanelPoseMixin):
         e_lin, e_rot = self.align_error
         target, tmat = self.env.seated_pose
         lateral = np.array([self.rng.uniform(-e_lin, e_lin), 0.0, self.rng.uniform(-e_lin, e_lin)])
-        self.goal = target + S.WALL_NORMAL * ScriptedInstaller.PREINSERT_OFFSET * 2 + lateral
+        self.goal = target + S.WALL_NORMAL * ScriptedInstaller.PREINSERT_OFFSET + lateral
         from .env import rotvec_to_mat
         self.goal_mat = rotvec_to_mat(self.rng.uniform(-e_rot, e_rot, 3)) @ tmat
 

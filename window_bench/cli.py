@@ -1,0 +1,168 @@
+"""``bench``: the command line of window-bench.
+
+    bench install   --env WindowInstall-A-v0 --episodes 3      # scripted installer, verbose
+    bench calibrate --env WindowInstall-A-v0 --episodes 100    # difficulty calibration
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import window_bench
+
+from .evaluation import atomic_write_text, evaluate, provenance, summarize
+from .installer import CONTROLLERS
+
+
+def _env_id(value: str) -> str:
+    if value not in window_bench.ENV_IDS:
+        raise argparse.ArgumentTypeError(
+            f"unknown env {value!r}; registered: {', '.join(window_bench.ENV_IDS)}")
+    return value
+
+
+def _positive(value: str) -> int:
+    try:
+        v = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+def _fmt_rate(s: dict) -> str:
+    lo, hi = s["wilson95"]
+    return f"{100 * s['success_rate']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+
+def cmd_install(args) -> int:
+    rows = evaluate(args.env, args.controller, args.episodes, seed=args.seed, progress=False)
+    print(f"{args.controller} on {args.env}, seeds {args.seed}..{args.seed + args.episodes - 1}")
+    print(f"{'seed':>5} {'success':>8} {'cycle s':>8} {'suction':>8} {'entered':>8} {'seated':>7}  failure")
+    fmt = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
+    for r in rows:
+        print(f"{r['seed']:>5} {str(r['success']):>8} {r['cycle_time_s']:>8.1f} "
+              f"{fmt(r['t_suction_acquired']):>8} {fmt(r['t_insertion_entered']):>8} "
+              f"{fmt(r['t_seated']):>7}  {r['failure_mode'] or ''}")
+    s = summarize(rows)
+    cyc = s["cycle_time_s_mean"]
+    print(f"success {s['successes']}/{s['episodes']} = {_fmt_rate(s)} (95 % Wilson); "
+          f"mean cycle time {'-' if cyc is None else f'{cyc:.1f} s'}")
+    if args.out:
+        atomic_write_text(args.out, json.dumps({"env_id": args.env, "controller": args.controller,
+                                                "summary": s, "episodes": rows,
+                                                "provenance": provenance()}, indent=1))
+    return 0
+
+
+def _plot(results: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .task import FAILURE_MODES
+    envs = list(results)
+    ctrls = sorted({c for e in envs for c in results[e]}, key=list(CONTROLLERS).index)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    width = 0.8 / len(ctrls)
+    for i, c in enumerate(ctrls):
+        xs, ys, err = [], [], [[], []]
+        for j, e in enumerate(envs):
+            if c not in results[e]:
+                continue
+            s = results[e][c]
+            xs.append(j + i * width)
+            ys.append(100 * s["success_rate"])
+            err[0].append(100 * (s["success_rate"] - s["wilson95"][0]))
+            err[1].append(100 * (s["wilson95"][1] - s["success_rate"]))
+        axes[0].bar(xs, ys, width, yerr=err, capsize=3, label=c)
+    axes[0].set_xticks([j + width * (len(ctrls) - 1) / 2 for j in range(len(envs))], envs, fontsize=8)
+    axes[0].set_ylabel("success rate, % (95 % Wilson)")
+    axes[0].set_ylim(0, 105)
+    axes[0].legend(fontsize=8)
+    labels, bottoms = [], None
+    cols = [f"{e.replace('WindowInstall-', '').replace('-v0', '')}\n{c}" for e in envs for c in ctrls if c in results[e]]
+    import numpy as np
+    bottoms = np.zeros(len(cols))
+    for mode in FAILURE_MODES:
+        vals = np.array([results[e][c]["failure_modes"].get(mode, 0) / results[e][c]["episodes"] * 100
+                         for e in envs for c in ctrls if c in results[e]])
+        if vals.sum() == 0:
+            continue
+        axes[1].bar(range(len(cols)), vals, bottom=bottoms, label=mode)
+        bottoms += vals
+        labels.append(mode)
+    axes[1].set_xticks(range(len(cols)), cols, fontsize=7)
+    axes[1].set_ylabel("episodes, %")
+    axes[1].set_title("failure modes", fontsize=9)
+    axes[1].legend(fontsize=7)
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def calibration_table(results: dict) -> str:
+    lines = ["| env | controller | episodes | success (95 % Wilson) | mean cycle time | failure modes |",
+             "|---|---|---|---|---|---|"]
+    for e, per in results.items():
+        for c, s in per.items():
+            modes = ", ".join(f"{m} {k}" for m, k in s["failure_modes"].items()) or "-"
+            cyc = "-" if s["cycle_time_s_mean"] is None else f"{s['cycle_time_s_mean']:.1f} s"
+            lines.append(f"| {e} | {c} | {s['episodes']} | {_fmt_rate(s)} | {cyc} | {modes} |")
+    return "\n".join(lines) + "\n"
+
+
+def cmd_calibrate(args) -> int:
+    out = Path(args.out)
+    results: dict = {}
+    for env_id in args.env:
+        results[env_id] = {}
+        for c in args.controllers:
+            rows = evaluate(env_id, c, args.episodes, seed=args.seed,
+                            rows_path=out / f"{env_id}__{c}.jsonl")
+            results[env_id][c] = summarize(rows)
+    meta = {"episodes": args.episodes, "seed": args.seed, "provenance": provenance()}
+    atomic_write_text(out / "calibration.json", json.dumps({"results": results, **meta}, indent=1))
+    table = calibration_table(results)
+    atomic_write_text(out / "calibration.md", table)
+    _plot(results, out / "calibration.png")
+    print(table)
+    print(f"wrote {out / 'calibration.json'}, {out / 'calibration.md'}, {out / 'calibration.png'}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="bench", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+    i = sub.add_parser("install", help="run a reference controller and print per-episode stages")
+    i.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
+    i.add_argument("--episodes", type=_positive, default=3)
+    i.add_argument("--seed", type=int, default=0, help="first episode seed")
+    i.add_argument("--controller", choices=sorted(CONTROLLERS), default="installer")
+    i.add_argument("--out", help="also write the episodes and summary to this JSON file")
+    i.set_defaults(func=cmd_install)
+    c = sub.add_parser("calibrate", help="difficulty calibration: success and failure modes per controller")
+    c.add_argument("--env", type=_env_id, nargs="+", default=["WindowInstall-A-v0", "WindowInstall-B-v0"])
+    c.add_argument("--controllers", nargs="+", choices=sorted(CONTROLLERS),
+                   default=["installer", "straight_push", "random"])
+    c.add_argument("--episodes", type=_positive, default=100)
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--out", default="runs/calibration", help="results directory (resumes if present)")
+    c.set_defaults(func=cmd_calibrate)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,181 @@
+"""Rolling out a controller, the statistics we report, and the run files they go into.
+
+Every results file carries the provenance the project promises: env id, controller, seeds,
+versions of window-bench / mujoco / numpy / gymnasium and the git commit. Per-episode rows
+are appended to a JSONL file as they finish, so a calibration killed at any moment resumes
+where it stopped; summaries are written to a temporary file and renamed into place.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import subprocess
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+from .installer import CONTROLLERS
+from .task import FAILURE_MODES
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval for a binomial proportion (the paper's convention)."""
+    if n <= 0:
+        raise ValueError(f"n must be positive, got {n}")
+    if not (0 <= successes <= n):
+        raise ValueError(f"successes={successes} must lie in [0, n={n}]")
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                             cwd=Path(__file__).resolve().parent, timeout=5)
+        commit = out.stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=5,
+                               cwd=Path(__file__).resolve().parent).stdout.strip()
+        return commit + ("-dirty" if dirty else "") if commit else "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def provenance() -> dict:
+    import mujoco
+
+    from . import __version__
+    return {
+        "window_bench": __version__, "mujoco": mujoco.__version__, "numpy": np.__version__,
+        "gymnasium": gym.__version__, "python": platform.python_version(),
+        "machine": platform.machine(), "git_commit": git_commit(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def run_episode(env, controller, seed: int) -> dict:
+    """One seeded episode; returns the row we log (stage event times in seconds)."""
+    obs, info = env.reset(seed=seed)
+    if "seed" in controller.reset.__code__.co_varnames:
+        controller.reset(seed=seed)
+    else:
+        controller.reset()
+    events = {"suction_acquired": 0.0 if info["suction_acquired"] else None,
+              "insertion_entered": None, "seated": None}
+    steps = 0
+    while True:
+        obs, reward, terminated, truncated, info = env.step(controller.act(obs))
+        steps += 1
+        for k in events:
+            if info[k] and events[k] is None:
+                events[k] = round(info["cycle_time_s"], 1)
+        if terminated or truncated:
+            break
+    return {
+        "seed": seed, "success": bool(terminated), "steps": steps,
+        "cycle_time_s": round(info["cycle_time_s"], 1),
+        "failure_mode": info["failure_mode"] or None,
+        "sim_unstable": bool(info["sim_unstable"]),
+        **{f"t_{k}": v for k, v in events.items()},
+        "recoveries": getattr(controller, "recoveries", None),
+        "randomization": {k: round(v, 6) for k, v in env.unwrapped._randomization.items()},
+    }
+
+
+def summarize(rows: list[dict]) -> dict:
+    n = len(rows)
+    k = sum(r["success"] for r in rows)
+    lo, hi = wilson_interval(k, n)
+    cycle = [r["cycle_time_s"] for r in rows if r["success"]]
+    modes = Counter(r["failure_mode"] for r in rows if not r["success"])
+    return {
+        "episodes": n, "successes": k, "success_rate": k / n, "wilson95": [lo, hi],
+        "cycle_time_s_mean": float(np.mean(cycle)) if cycle else None,
+        "cycle_time_s_median": float(np.median(cycle)) if cycle else None,
+        "failure_modes": {m: modes.get(m, 0) for m in FAILURE_MODES if modes.get(m, 0)},
+        "seeds": [min(r["seed"] for r in rows), max(r["seed"] for r in rows)],
+        "stage_rates": {
+            "suction_acquired": sum(r["t_suction_acquired"] is not None for r in rows) / n,
+            "insertion_entered": sum(r["t_insertion_entered"] is not None for r in rows) / n,
+            "seated": k / n,
+        },
+    }
+
+
+def evaluate(env_id: str, controller: str, episodes: int, seed: int = 0,
+             rows_path: str | os.PathLike | None = None, progress: bool = True,
+             env_kwargs: dict | None = None) -> list[dict]:
+    """Run ``episodes`` seeded episodes (seeds ``seed .. seed+episodes-1``).
+
+    With ``rows_path`` each finished episode is appended to that JSONL file at once, and
+    episodes already in it are skipped: a killed run resumes."""
+    if controller not in CONTROLLERS:
+        raise ValueError(f"controller={controller!r}; allowed: {sorted(CONTROLLERS)}")
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    done: dict[int, dict] = {}
+    if rows_path is not None and Path(rows_path).exists():
+        for line in Path(rows_path).read_text().splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line cut by a kill: that episode is simply run again
+            done[row["seed"]] = row
+    env = gym.make(env_id, **(env_kwargs or {}))
+    ctrl = CONTROLLERS[controller](env)
+    seeds = [s for s in range(seed, seed + episodes) if s not in done]
+    rows = [done[s] for s in range(seed, seed + episodes) if s in done]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=episodes, initial=len(rows), desc=f"{controller} {env_id}",
+                   unit="ep", dynamic_ncols=True)
+    f = None
+    if rows_path is not None:
+        Path(rows_path).parent.mkdir(parents=True, exist_ok=True)
+        f = open(rows_path, "a")
+    try:
+        for s in seeds:
+            row = run_episode(env, ctrl, s)
+            rows.append(row)
+            if f is not None:
+                f.write(json.dumps(row) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+            if bar is not None:
+                k = sum(r["success"] for r in rows)
+                bar.set_postfix(success=f"{k}/{len(rows)}")
+                bar.update(1)
+    finally:
+        if f is not None:
+            f.close()
+        if bar is not None:
+            bar.close()
+        env.close()
+    return sorted(rows, key=lambda r: r["seed"])
