@@ -80,8 +80,9 @@ def _chol_solve(L, b):
 
 @numba.njit(cache=True)
 def osc_torque(jacp, jacr, M, bias, q, qd, pos, mat, target_pos, target_mat,
-               q_null, payload_jac, payload_force, gains, torque_limit, out):
-    """Joint torques for the first 7 dofs. All arrays are float64; writes into ``out``."""
+               q_null, payload_jac, payload_force, gains, torque_limit, out, max_abs_out):
+    """Joint torques for the first 7 dofs. All arrays are float64; writes into ``out`` and
+    keeps the running maximum of |torque| per joint in ``max_abs_out``."""
     n = 7
     J = np.empty((6, n))
     for i in range(3):
@@ -163,6 +164,7 @@ def osc_torque(jacp, jacr, M, bias, q, qd, pos, mat, target_pos, target_mat,
     for i in range(n):
         t = scale * tau[i] + rest[i]
         out[i] = min(max(t, -torque_limit[i]), torque_limit[i])
+        max_abs_out[i] = max(max_abs_out[i], abs(out[i]))
 
 
 class OSC:
@@ -200,21 +202,25 @@ class OSC:
             pf[:] = 0.0
         else:
             pf[:] = payload_mass * gravity
-        xpos, xmat = data.site_xpos, data.site_xmat
+        # Views into MjData's buffers are made once: they stay valid across steps.
+        pos, mat = data.site_xpos[site], data.site_xmat[site].reshape(3, 3)
+        bias, qpos, qvel, ctrl = data.qfrc_bias, data.qpos, data.qvel, data.ctrl
+        com = data.xipos[payload_body] if payload_body >= 0 else None
+        step1, step2, step, jac_site, full_m = (mujoco.mj_step1, mujoco.mj_step2, mujoco.mj_step,
+                                                mujoco.mj_jacSite, mujoco.mj_fullM)
+        args = (self.target_pos, self.target_mat, self.q_null, pj, pf, self.gains,
+                self.torque_limit, ctrl, self.max_abs_tau)
         for _ in range(n_substeps):
-            mujoco.mj_step1(m, data)
-            mujoco.mj_jacSite(m, data, jacp, jacr, site)
-            mujoco.mj_fullM(m, data, M)
-            if payload_body >= 0:
-                mujoco.mj_jac(m, data, pj, None, data.xipos[payload_body], self.tool_body)
-            osc_torque(jacp, jacr, M, data.qfrc_bias, data.qpos, data.qvel, xpos[site],
-                       xmat[site].reshape(3, 3), self.target_pos, self.target_mat, self.q_null,
-                       pj, pf, self.gains, self.torque_limit, tau)
-            data.ctrl[:] = tau
-            mujoco.mj_step2(m, data)
+            step1(m, data)
+            jac_site(m, data, jacp, jacr, site)
+            full_m(m, data, M)
+            if com is not None:
+                mujoco.mj_jac(m, data, pj, None, com, self.tool_body)
+            osc_torque(jacp, jacr, M, bias, qpos, qvel, pos, mat, *args)
+            step2(m, data)
             if hold > 1:  # zero-order hold of the torque for the remaining physics steps
-                mujoco.mj_step(m, data, hold - 1)
-            np.maximum(self.max_abs_tau, np.abs(tau), out=self.max_abs_tau)
+                step(m, data, hold - 1)
+        tau[:] = ctrl
 
 
 def solve_ik(model: mujoco.MjModel, site: int, target_pos: np.ndarray, target_mat: np.ndarray,

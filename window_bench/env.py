@@ -137,6 +137,8 @@ class WindowInstallEnv(gym.Env):
         self.osc = OSC(self.model, sc.tcp_site, sc.tool_body, OSCGains(), q_null=self.q_null)
         self._renderer = None
         self._render_renderer = None
+        self._lining_mask = np.zeros(self.model.ngeom, bool)
+        self._lining_mask[np.concatenate([sc.buck_geoms, sc.stop_geoms, sc.wall_geoms])] = True
 
         f32 = np.float32
         inf = np.inf
@@ -405,12 +407,15 @@ class WindowInstallEnv(gym.Env):
         return {"depth": depth, "front_depth": depth + reach, "in_opening": bool(in_opening)}
 
     def _buck_contact(self) -> bool:
-        d, sc = self.data, self.scene
+        """Is the panel touching the buck lining, the bevels, the back stop or the wall?"""
+        d = self.data
+        if d.ncon == 0:
+            return False
         g1 = d.contact.geom1[:d.ncon]
         g2 = d.contact.geom2[:d.ncon]
-        lining = np.concatenate([sc.buck_geoms, sc.stop_geoms, sc.wall_geoms])
-        pg = sc.panel_geom
-        return bool(np.any(((g1 == pg) & np.isin(g2, lining)) | ((g2 == pg) & np.isin(g1, lining))))
+        pg = self.scene.panel_geom
+        lining = self._lining_mask
+        return bool(np.any(((g1 == pg) & lining[g2]) | ((g2 == pg) & lining[g1])))
 
     def _acceptance(self):
         d, sc = self.data, self.scene

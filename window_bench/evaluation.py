@@ -82,10 +82,7 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 def run_episode(env, controller, seed: int) -> dict:
     """One seeded episode; returns the row we log (stage event times in seconds)."""
     obs, info = env.reset(seed=seed)
-    if "seed" in controller.reset.__code__.co_varnames:
-        controller.reset(seed=seed)
-    else:
-        controller.reset()
+    controller.reset(seed=seed)
     events = {"suction_acquired": 0.0 if info["suction_acquired"] else None,
               "insertion_entered": None, "seated": None}
     steps = 0

@@ -66,11 +66,13 @@ class ScriptedInstaller(_PanelPoseMixin):
     RETRACT = 0.012
     MAX_RECOVERIES = 8
 
-    def __init__(self, env, align_error_mm: float = 0.0, align_error_deg: float = 0.0,
+    def __init__(self, env, align_error_mm: float = 1.0, align_error_deg: float = 0.5,
                  seed: int | None = None):
-        """``align_error_*``: half-widths of a per-episode error in the installer's estimate
-        of where the seat is (lateral, and rotation about each axis) - an imperfect eye.
-        Contact stalls reveal it: each recovery re-measures and shrinks it 4-fold."""
+        """``align_error_*``: half-widths of a per-episode uniform error in the installer's
+        estimate of where the seat is (lateral per axis, and rotation about each axis) - the
+        accuracy of one visual alignment. Contact stalls reveal it: each recovery
+        re-measures and shrinks it 4-fold. ``align_error_mm=0, align_error_deg=0`` gives a
+        perfect eye."""
         if align_error_mm < 0 or align_error_deg < 0:
             raise ValueError(f"alignment errors must be >= 0, got {align_error_mm} mm, {align_error_deg} deg")
         self.env = env.unwrapped
@@ -252,12 +254,14 @@ class StraightPush(_PanelPoseMixin):
 
     PUSH = 0.2   # x 0.025 m = 5 mm per step along the tool axis
 
-    def __init__(self, env, align_error_mm: float = 2.0, align_error_deg: float = 1.0,
+    def __init__(self, env, align_error_mm: float = 1.0, align_error_deg: float = 0.5,
                  seed: int | None = None):
+        if align_error_mm < 0 or align_error_deg < 0:
+            raise ValueError(f"alignment errors must be >= 0, got {align_error_mm} mm, {align_error_deg} deg")
         self.env = env.unwrapped
         self.align_error = (align_error_mm / 1000.0, np.deg2rad(align_error_deg))
         self.rng = np.random.default_rng(seed)
-        self._transport = ScriptedInstaller(env)
+        self._transport = ScriptedInstaller(env, 0.0, 0.0)
         self.reset()
 
     def reset(self, seed: int | None = None) -> None:
@@ -266,11 +270,12 @@ class StraightPush(_PanelPoseMixin):
         self._transport.reset()
         self.phase = None
         self.align_steps = 0
+        # The same imperfect eye as the installer's (same draw for the same seed), but used
+        # once: the push that follows never looks again.
         e_lin, e_rot = self.align_error
         target, tmat = self.env.seated_pose
         lateral = np.array([self.rng.uniform(-e_lin, e_lin), 0.0, self.rng.uniform(-e_lin, e_lin)])
         self.goal = target + S.WALL_NORMAL * ScriptedInstaller.PREINSERT_OFFSET + lateral
-        from .env import rotvec_to_mat
         self.goal_mat = rotvec_to_mat(self.rng.uniform(-e_rot, e_rot, 3)) @ tmat
 
     def act(self, obs=None) -> np.ndarray:
@@ -300,8 +305,9 @@ class RandomPolicy:
         self.rng = np.random.default_rng(seed)
         self.space = env.action_space
 
-    def reset(self) -> None:
-        pass
+    def reset(self, seed: int | None = None) -> None:
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
 
     def act(self, obs=None) -> np.ndarray:
         return self.rng.uniform(-1.0, 1.0, 7).astype(np.float32)

@@ -41,7 +41,7 @@ IIWA_FLANGE_Z = 0.045
 # Joint axes in the zero configuration (J2, J4, J6 pitch; J1, J3, J5, J7 roll about the link).
 IIWA_AXES = ((0, 0, 1), (0, 1, 0), (0, 0, 1), (0, -1, 0), (0, 0, 1), (0, 1, 0), (0, 0, 1))
 # Link masses (kg) and principal inertias (kg m^2), close to the identified values that
-# KUKA-derived models publish (total arm 29.9 kg vs 29.5 kg in the datasheet).
+# KUKA-derived models publish (links 1-7: 25.6 kg).
 IIWA_MASS = (5.76, 6.35, 3.5, 3.5, 3.5, 1.8, 1.2)
 IIWA_COM_Z = (0.12, 0.042, 0.13, 0.034, 0.076, 0.0004, 0.02)
 IIWA_INERTIA = (
@@ -374,8 +374,12 @@ def _build_robot(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
     cam = tool.add_camera()
     cam.name = "robot0_wrist"
     cam.pos = [0.0, -0.09, 0.02]
-    # Look along the tool axis (+z of the tool), slightly inward.
-    cam.quat = _quat_from_mat(np.column_stack([[-1, 0, 0], [0, 0.966, 0.259], [0, 0.259, -0.966]]) @ np.eye(3) * 1)
+    # MuJoCo cameras look along their -z: view along the tool axis (+z of the tool), then
+    # tilted 17 deg toward the axis so the cup lip and the face it holds are in view.
+    look = np.column_stack([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])
+    tilt = np.deg2rad(-17.0)
+    rx = np.array([[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]])
+    cam.quat = _quat_from_mat(rx @ look)
     cam.fovy = 75
 
 
@@ -426,12 +430,18 @@ def _add_pairs(spec: mujoco.MjSpec, cfg: SceneConfig) -> dict[str, list[str]]:
 
 def _add_cameras(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
     wb = spec.worldbody
+    # A marker body at the opening centre for cameras to track (the wall body sits at the
+    # origin, its geoms carry world coordinates).
+    opening = wb.add_body()
+    opening.name = "opening"
+    opening.pos = [OPENING_CENTER_X, -WALL_Y, OPENING_CENTER_Z]
     side = wb.add_camera()
     side.name = "side"
-    # Looks at the opening from the robot side, above and behind.
+    # From behind and above the robot's right shoulder: the opening, the buck and the panel
+    # on its way in.
     side.mode = mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODY
-    side.targetbody = "wall"
-    side.pos = [1.4, 0.6, 1.3]
+    side.targetbody = "opening"
+    side.pos = [1.05, 0.25, 1.25]
     side.fovy = 55
     overview = wb.add_camera()
     overview.name = "overview"
