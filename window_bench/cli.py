@@ -99,7 +99,8 @@ def _plot(results: dict, path: Path) -> None:
     axes[1].set_xticks(range(len(cols)), cols, fontsize=7)
     axes[1].set_ylabel("episodes, %")
     axes[1].set_title("failure modes", fontsize=9)
-    axes[1].legend(fontsize=7)
+    if labels:
+        axes[1].legend(fontsize=7)
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")
     fig.savefig(tmp, dpi=110)

@@ -156,7 +156,11 @@ def evaluate(env_id: str, controller: str, episodes: int, seed: int = 0,
     f = None
     if rows_path is not None:
         Path(rows_path).parent.mkdir(parents=True, exist_ok=True)
+        cut = Path(rows_path).exists() and not Path(rows_path).read_bytes().endswith(b"\n") \
+            and Path(rows_path).stat().st_size > 0
         f = open(rows_path, "a")
+        if cut:
+            f.write("\n")  # end the line a kill cut short, so the next row starts clean
     try:
         for s in seeds:
             row = run_episode(env, ctrl, s)

@@ -1,0 +1,54 @@
+"""The ``bench`` command line: the README's main job and its error messages."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from window_bench.cli import main
+
+
+def test_bench_install_prints_stages_and_summary(capsys, tmp_path):
+    out = tmp_path / "install.json"
+    assert main(["install", "--env", "WindowInstall-A-v0", "--episodes", "2", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "success 2/2" in text and "Wilson" in text and "mean cycle time" in text
+    assert "suction" in text and "entered" in text and "seated" in text
+    data = json.loads(out.read_text())
+    assert data["summary"]["episodes"] == 2
+    prov = data["provenance"]
+    assert {"window_bench", "mujoco", "numpy", "gymnasium", "git_commit"} <= set(prov)
+    assert [e["seed"] for e in data["episodes"]] == [0, 1]
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["install", "--env", "WindowInstall-C-v0"], "unknown env 'WindowInstall-C-v0'"),
+    (["install", "--episodes", "0"], "must be >= 1, got 0"),
+    (["install", "--episodes", "three"], "expected an integer, got 'three'"),
+    (["install", "--controller", "magic"], "invalid choice: 'magic'"),
+])
+def test_bench_rejects_bad_input_with_a_clear_message(argv, needle, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert needle in capsys.readouterr().err
+
+
+def test_bench_calibrate_writes_table_json_and_plot(tmp_path):
+    out = tmp_path / "cal"
+    assert main(["calibrate", "--env", "WindowInstall-B-v0", "--controllers", "installer",
+                 "--episodes", "2", "--out", str(out)]) == 0
+    data = json.loads((out / "calibration.json").read_text())
+    s = data["results"]["WindowInstall-B-v0"]["installer"]
+    assert s["episodes"] == 2 and 0.0 <= s["wilson95"][0] <= s["success_rate"] <= s["wilson95"][1]
+    assert data["seed"] == 0 and "git_commit" in data["provenance"]
+    assert "| WindowInstall-B-v0 | installer | 2 |" in (out / "calibration.md").read_text()
+    assert (out / "calibration.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len((out / "WindowInstall-B-v0__installer.jsonl").read_text().splitlines()) == 2
+
+
+def test_console_script_is_installed():
+    r = subprocess.run([sys.executable, "-m", "window_bench.cli", "--help"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "calibrate" in r.stdout and "install" in r.stdout
