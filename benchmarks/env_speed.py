@@ -206,8 +206,8 @@ class Replayer:
             if latched:
                 mujoco.mj_jac(m, d, pj, None, d.xipos[panel], tool)
             osc_torque(jacp, jacr, M, d.qfrc_bias, d.qpos, d.qvel, xpos[site],
-                       xmat[site].reshape(3, 3), tp, tm, q_null, pj, pf, gains, tlim, tau)
-            d.ctrl[:] = tau
+                       xmat[site].reshape(3, 3), tp, tm, q_null, pj, pf, gains, tlim, d.ctrl,
+                       o.max_abs_tau)
         return time.perf_counter() - t0
 
 

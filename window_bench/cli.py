@@ -77,8 +77,8 @@ def _plot(results: dict, path: Path) -> None:
             s = results[e][c]
             xs.append(j + i * width)
             ys.append(100 * s["success_rate"])
-            err[0].append(100 * (s["success_rate"] - s["wilson95"][0]))
-            err[1].append(100 * (s["wilson95"][1] - s["success_rate"]))
+            err[0].append(max(0.0, 100 * (s["success_rate"] - s["wilson95"][0])))
+            err[1].append(max(0.0, 100 * (s["wilson95"][1] - s["success_rate"])))
         axes[0].bar(xs, ys, width, yerr=err, capsize=3, label=c)
     axes[0].set_xticks([j + width * (len(ctrls) - 1) / 2 for j in range(len(envs))], envs, fontsize=8)
     axes[0].set_ylabel("success rate, % (95 % Wilson)")

@@ -146,6 +146,7 @@ def evaluate(env_id: str, controller: str, episodes: int, seed: int = 0,
             done[row["seed"]] = row
     env = gym.make(env_id, **(env_kwargs or {}))
     ctrl = CONTROLLERS[controller](env)
+    commit = git_commit()
     seeds = [s for s in range(seed, seed + episodes) if s not in done]
     rows = [done[s] for s in range(seed, seed + episodes) if s in done]
     bar = None
@@ -164,6 +165,7 @@ def evaluate(env_id: str, controller: str, episodes: int, seed: int = 0,
     try:
         for s in seeds:
             row = run_episode(env, ctrl, s)
+            row["git_commit"] = commit   # a resumed run may span commits: each row says
             rows.append(row)
             if f is not None:
                 f.write(json.dumps(row) + "\n")
