@@ -362,3 +362,26 @@ def test_joint_velocity_limit_within_steps_A(make_env):
     # under the limit.
     peak, _ = _random_play(make_env(A), seed=0, vacuum=1.0)
     assert peak <= VEL_LIMIT
+
+
+def test_broken_grip_needs_a_fresh_vacuum_command(make_env, monkeypatch):
+    # Lower the pull-off limit below the panel's weight: lifting breaks the grip at once.
+    import window_bench.env as E
+    env = make_env(A)
+    u = env.unwrapped
+    env.reset(seed=0)
+    monkeypatch.setattr(E, "VACUUM_HOLD_FORCE", 1.0)
+    monkeypatch.setattr(E, "VACUUM_HOLD_MOMENT", 0.01)
+    obs, r, term, trunc, info = env.step(HOLD)
+    assert info["suction_failed"] and not u.suction_engaged and info["suction_failures"] == 1
+    monkeypatch.setattr(E, "VACUUM_HOLD_FORCE", 200.0)
+    monkeypatch.setattr(E, "VACUUM_HOLD_MOMENT", 25.0)
+    # Vacuum still commanded, cup still on the face: no silent re-latch.
+    for _ in range(2):
+        obs, *_ = env.step(HOLD)
+        assert not u.suction_engaged and obs["robot0_vacuum"][0] == 0.0
+    # A fresh command (g = 0, then 1) re-engages if the face is still within the snap distance.
+    env.step(IDLE)
+    if u.suction_valid():
+        env.step(HOLD)
+        assert u.suction_engaged

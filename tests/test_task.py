@@ -331,3 +331,21 @@ def test_every_label_is_in_the_taxonomy():
     assert set(T.FAILURE_MODES) == {"never_acquired", "suction_lost", "approach_failed",
                                     "entry_wedging", "mid_depth_jamming", "unstable_seating",
                                     "timeout", "sim_unstable"}
+
+
+def test_grip_peeled_by_a_binding_panel_is_labelled_by_where_it_bound():
+    tr = T.StageTracker(SEATED_DEPTH)
+    tr.update(latched=True, depth=-0.05, front_depth=-0.01, in_opening=True, buck_contact=False,
+              commanded=0.004, realized=0.004, accepted=False)
+    tr.update(latched=True, depth=0.03, front_depth=0.07, in_opening=True, buck_contact=True,
+              commanded=0.004, realized=0.004, accepted=False)
+    tr.update(latched=False, depth=0.03, front_depth=0.07, in_opening=True, buck_contact=True,
+              commanded=0.004, realized=0.0, accepted=False, suction_failed=True)
+    assert tr.failure_mode() == "mid_depth_jamming"
+    # The same loss in free space (no contact with the lining) is a plain suction loss.
+    tr = T.StageTracker(SEATED_DEPTH)
+    tr.update(latched=True, depth=-0.3, front_depth=-0.26, in_opening=False, buck_contact=False,
+              commanded=0.02, realized=0.02, accepted=False)
+    tr.update(latched=False, depth=-0.3, front_depth=-0.26, in_opening=False, buck_contact=False,
+              commanded=0.02, realized=0.02, accepted=False, suction_failed=True)
+    assert tr.failure_mode() == "suction_lost"

@@ -188,6 +188,7 @@ class OSC:
         self.target_pos = np.zeros(3)
         self.target_mat = np.eye(3)
         self.max_abs_tau = np.zeros(7)
+        self.weld_force_mean = np.zeros(6)   # suction weld force/torque, mean over the step
 
     def run(self, data: mujoco.MjData, n_substeps: int, payload_body: int = -1,
             payload_mass: float = 0.0, hold: int = PHYSICS_PER_CONTROL) -> None:
@@ -210,6 +211,9 @@ class OSC:
                                                 mujoco.mj_jacSite, mujoco.mj_fullM)
         args = (self.target_pos, self.target_mat, self.q_null, pj, pf, self.gains,
                 self.torque_limit, ctrl, self.max_abs_tau)
+        weld = self.weld_force_mean
+        weld[:] = 0.0
+        n_weld = 0
         for _ in range(n_substeps):
             step1(m, data)
             jac_site(m, data, jacp, jacr, site)
@@ -220,6 +224,12 @@ class OSC:
             step2(m, data)
             if hold > 1:  # zero-order hold of the torque for the remaining physics steps
                 step(m, data, hold - 1)
+            if com is not None and data.ne >= 6:
+                # The suction weld is the model's only equality: its 6 rows come first.
+                weld += data.efc_force[:6]  # re-read: the efc arrays resize every step
+                n_weld += 1
+        if n_weld:
+            weld /= n_weld
         tau[:] = ctrl
 
 

@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import scene as S
-from .env import POS_SCALE, ROT_SCALE, WindowInstallEnv, mat_to_rotvec, rotvec_to_mat
+from .env import (POS_SCALE, ROT_SCALE, VACUUM_HOLD_MOMENT, WindowInstallEnv, mat_to_rotvec,
+                  rotvec_to_mat)
 
 ENGAGE, RELEASE = 1.0, -1.0
 
@@ -61,6 +62,7 @@ class ScriptedInstaller(_PanelPoseMixin):
     ALIGN_POS_TOL = 0.0003
     ALIGN_ROT_TOL = np.deg2rad(0.1)
     INSERT_SPEED = 0.004        # m per step
+    SLOW_SPEED = 0.0015         # m per step at the entry and just before the stop
     STALL_WINDOW = 3
     STALL_PROGRESS = 0.25       # realized / commanded depth progress below this = stall
     RETRACT = 0.012
@@ -196,13 +198,27 @@ class ScriptedInstaller(_PanelPoseMixin):
         if depth > -0.0015:
             self._set("seat")
             return self._seat_action()
+        # Binding felt through the grip (the installer's hands feel the panel twist in the
+        # cup): back off before the seal peels.
+        pull, shear, moment = self.env.suction_wrench()
+        if moment > 0.3 * VACUUM_HOLD_MOMENT and self.recoveries < self.MAX_RECOVERIES:
+            return self._start_recovery(depth)
         # Stall: progress over the last few steps well below what was commanded.
         if len(self.depth_hist) > self.STALL_WINDOW:
             progress = self.depth_hist[-1] - self.depth_hist[-1 - self.STALL_WINDOW]
-            if progress < self.STALL_PROGRESS * self.INSERT_SPEED * self.STALL_WINDOW:
+            if progress < self.STALL_PROGRESS * self.SLOW_SPEED * self.STALL_WINDOW:
                 if self.recoveries < self.MAX_RECOVERIES:
                     return self._start_recovery(depth)
-        goal = target + S.INSERTION_AXIS * (depth + self.INSERT_SPEED)
+        # Slow down where contact starts: the leading face crossing the bevelled entry, and
+        # the last few millimetres before the back stop (impacts there peel the cup).
+        entry = -S.STOP_DEPTH   # depth (seat-relative) at which the leading face meets the wall
+        slow = abs(depth - entry) < 0.01 or depth > -0.008
+        speed = self.SLOW_SPEED if slow else self.INSERT_SPEED
+        goal = target + S.INSERTION_AXIS * min(depth + speed, 0.0)
+        if depth > -0.01:
+            # Near the stop, let the panel square itself against it: no attitude command,
+            # so the OSC target follows the contact instead of twisting the panel in the cup.
+            return self._panel_goal_action(goal, self.env.panel_pose()[1], max_lin=0.5, max_rot=0.0)
         return self._panel_goal_action(goal, tmat, max_lin=0.5, max_rot=0.2)
 
     def _start_recovery(self, depth: float):
@@ -229,15 +245,18 @@ class ScriptedInstaller(_PanelPoseMixin):
         return self._panel_goal_action(goal, tmat, max_lin=0.3, max_rot=0.2)
 
     def _seat_action(self):
-        target, tmat = self._seated()
-        # Aim 1 mm past the seat so the front face stays against the stop, then hold.
+        target, _ = self._seated()
+        # Aim 1 mm past the seat so the front face stays against the stop, then hold; the
+        # attitude is left to the stop (compliant seating).
         goal = target + S.INSERTION_AXIS * 0.001
-        return self._panel_goal_action(goal, tmat, max_lin=0.2, max_rot=0.2)
+        return self._panel_goal_action(goal, self.env.panel_pose()[1], max_lin=0.2, max_rot=0.0)
 
     def _seat(self):
         """Hold the panel against the stop until the env accepts the seating; if it does not
         settle into acceptance (off-centre, tilted), back off and re-seat."""
-        if self.phase_steps > 15 and self.recoveries < self.MAX_RECOVERIES:
+        moment = self.env.suction_wrench()[2]
+        if ((self.phase_steps > 15 or moment > 0.3 * VACUUM_HOLD_MOMENT)
+                and self.recoveries < self.MAX_RECOVERIES):
             return self._start_recovery(self._depth())
         return self._seat_action()
 

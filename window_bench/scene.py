@@ -72,7 +72,8 @@ TOOL_LENGTH = TOOL_BODY_LENGTH + CUP_LENGTH  # flange -> cup lip (the TCP), 0.11
 TOOL_MASS = 0.6
 
 # ------------------------------------------------------------------------------ wall
-WALL_Y = 0.66            # wall face at y = -WALL_Y (outside the ground region, |y|<=0.61)
+WALL_Y = 0.70            # wall face at y = -WALL_Y: clear of every ground placement, even a
+                         # 0.6 m panel at y = -0.3 turned 15 deg reaches only y = -0.668
 WALL_THICKNESS = 0.14    # depth of the wood buck
 BUCK_THICKNESS = 0.02    # lining boards
 BUCK_CHAMFER = 0.005     # 45-degree eased entry edge of the lining boards
@@ -437,8 +438,8 @@ def _add_cameras(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
     opening.pos = [OPENING_CENTER_X, -WALL_Y, OPENING_CENTER_Z]
     side = wb.add_camera()
     side.name = "side"
-    # From behind and above the robot's right shoulder: the opening, the buck and the panel
-    # on its way in.
+    # In front of the robot (+x), on the side away from the wall, looking at the opening:
+    # the buck, the back stop and the panel on its way in.
     side.mode = mujoco.mjtCamLight.mjCAMLIGHT_TARGETBODY
     side.targetbody = "opening"
     side.pos = [1.05, 0.25, 1.25]

@@ -10,7 +10,9 @@ Failure taxonomy (one label per episode that does not end in acceptance):
 
 =====================  =====================================================================
 ``never_acquired``     suction never latched (Experiment B).
-``suction_lost``       suction latched at some point but is not latched at the end.
+``suction_lost``       suction latched at some point but is not latched at the end (a grip
+                       peeled off by a panel binding in the opening is labelled by where it
+                       bound: entry_wedging, mid_depth_jamming or unstable_seating).
 ``approach_failed``    held, but the panel never entered the opening.
 ``entry_wedging``      entered, stalled in contact with the buck at less than 35 % of the
                        seating depth (binding/wedging at the entry edge).
@@ -20,8 +22,9 @@ Failure taxonomy (one label per episode that does not end in acceptance):
 ``sim_unstable``       physics diverged; the episode was truncated.
 =====================  =====================================================================
 
-The env reports ``failure_mode = ""`` for an accepted episode and on every step before the
-last one.
+On every step the env reports in ``info["failure_mode"]`` the label the episode would get
+if it ended there (``""`` once accepted), so the label is right whichever wrapper ends the
+episode; read it on the final step.
 
 The seated target is the centre of the opening. A panel released onto the sill rests the
 full clearance (2 mm) low and is therefore *not* accepted: like an installer who shims and
@@ -80,9 +83,11 @@ class StageTracker:
     max_depth: float = -np.inf
     stall_steps: int = 0
     stall_depths: list = field(default_factory=list)
+    bind_loss_depth: float | None = None   # depth at which a binding panel peeled the grip
 
     def update(self, *, latched: bool, depth: float, front_depth: float, in_opening: bool,
-               buck_contact: bool, commanded: float, realized: float, accepted: bool) -> None:
+               buck_contact: bool, commanded: float, realized: float, accepted: bool,
+               suction_failed: bool = False) -> None:
         """One 10 Hz step. ``depth``/``front_depth``: panel centre / leading face past the
         wall face along the insertion axis (m); ``in_opening``: the panel's centre lies within
         the opening's footprint; ``commanded``/``realized``: TCP translation this step (m)."""
@@ -96,6 +101,8 @@ class StageTracker:
             self.stall_steps += 1
             self.stall_depths.append(depth)
         self.seated |= accepted
+        if suction_failed and buck_contact and self.insertion_entered:
+            self.bind_loss_depth = depth
 
     def failure_mode(self, sim_unstable: bool = False) -> str | None:
         if self.seated:
@@ -105,14 +112,22 @@ class StageTracker:
         if not self.suction_acquired:
             return "never_acquired"
         if not self.latched:
+            if self.bind_loss_depth is not None:
+                # The grip peeled because the panel bound in the opening: the binding is the
+                # failure, labelled by where it happened.
+                return self._contact_label(self.bind_loss_depth)
             return "suction_lost"
         if not self.insertion_entered:
             return "approach_failed"
         if self.max_depth >= self.seated_depth - SEATING_DEPTH_TOL:
             return "unstable_seating"
         if self.stall_steps >= STALL_STEPS:
-            deepest_stall = float(np.median(self.stall_depths[-STALL_STEPS:]))
-            if deepest_stall < ENTRY_FRACTION * self.seated_depth:
-                return "entry_wedging"
-            return "mid_depth_jamming"
+            return self._contact_label(float(np.median(self.stall_depths[-STALL_STEPS:])))
         return "timeout"
+
+    def _contact_label(self, depth: float) -> str:
+        if depth >= self.seated_depth - SEATING_DEPTH_TOL:
+            return "unstable_seating"
+        if depth < ENTRY_FRACTION * self.seated_depth:
+            return "entry_wedging"
+        return "mid_depth_jamming"
