@@ -43,7 +43,6 @@ import platform
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -57,6 +56,7 @@ import numpy as np  # noqa: E402
 import window_bench  # noqa: E402,F401  (registers the ids)
 from window_bench import scene as S  # noqa: E402
 from window_bench.controller import OSC, OSCGains, osc_torque  # noqa: E402
+from window_bench.evaluation import atomic_write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PHYS_PER_ENV_STEP = S.CONTROL_SUBSTEPS * S.PHYSICS_PER_CONTROL  # 100
@@ -189,7 +189,7 @@ class Replayer:
         s.apply(m, d, self.sc)
         mujoco.mj_step1(m, d)
         site, tool, panel = sc.tcp_site, sc.tool_body, sc.panel_body
-        jacp, jacr, M, tau, pj, pf = self.jacp, self.jacr, self.M, self.tau, self.pj, self.pf
+        jacp, jacr, M, pj, pf = self.jacp, self.jacr, self.M, self.pj, self.pf
         latched = s.latched
         if latched:
             pf[:] = self.mass * -m.opt.gravity
@@ -287,19 +287,7 @@ def summary(values: list[float]) -> dict:
 
 
 def write_json_atomic(path: Path, payload: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(payload, f, indent=2)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_text(path, json.dumps(payload, indent=2) + "\n")
 
 
 def main(argv=None) -> int:

@@ -1,6 +1,5 @@
 """Task semantics: the acceptance test, seating in the env, and the failure taxonomy."""
 
-import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest

@@ -513,6 +513,17 @@ class WindowInstallEnv(gym.Env):
         d, sc = self.data, self.scene
         return d.site_xpos[sc.tcp_site].copy(), d.site_xmat[sc.tcp_site].reshape(3, 3).copy()
 
+    def holding_torque(self) -> np.ndarray:
+        """Joint torques that hold the current posture against gravity, including the panel
+        while it is held (the static part of what the OSC commands), N m."""
+        m, d, sc = self.model, self.data, self.scene
+        tau = d.qfrc_bias[:7].copy()   # gravity (+ small Coriolis terms when moving)
+        if self._latched:
+            jacp = np.zeros((3, m.nv))
+            mujoco.mj_jac(m, d, jacp, None, d.xipos[sc.panel_body], sc.tool_body)
+            tau += jacp[:, :7].T @ (self.cfg.mass * -m.opt.gravity)
+        return tau
+
     @property
     def suction_engaged(self) -> bool:
         return self._latched

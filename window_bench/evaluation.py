@@ -22,6 +22,7 @@ import gymnasium as gym
 import numpy as np
 
 from .installer import CONTROLLERS
+from .scene import TORQUE_LIMITS
 from .task import FAILURE_MODES
 
 
@@ -86,9 +87,12 @@ def run_episode(env, controller, seed: int) -> dict:
     events = {"suction_acquired": 0.0 if info["suction_acquired"] else None,
               "insertion_entered": None, "seated": None}
     steps = 0
+    u = env.unwrapped
+    hold = np.zeros(7)
     while True:
         obs, reward, terminated, truncated, info = env.step(controller.act(obs))
         steps += 1
+        np.maximum(hold, np.abs(u.holding_torque()), out=hold)
         for k in events:
             if info[k] and events[k] is None:
                 events[k] = round(info["cycle_time_s"], 1)
@@ -101,6 +105,10 @@ def run_episode(env, controller, seed: int) -> dict:
         "sim_unstable": bool(info["sim_unstable"]),
         **{f"t_{k}": v for k, v in events.items()},
         "recoveries": getattr(controller, "recoveries", None),
+        "suction_failures": info["suction_failures"],
+        # Max over the episode, as a fraction of each joint's torque limit (Table 10).
+        "holding_torque_frac": np.round(hold / TORQUE_LIMITS, 3).tolist(),
+        "peak_torque_frac": np.round(u.osc.max_abs_tau / TORQUE_LIMITS, 3).tolist(),
         "randomization": {k: round(v, 6) for k, v in env.unwrapped._randomization.items()},
     }
 
@@ -117,6 +125,9 @@ def summarize(rows: list[dict]) -> dict:
         "cycle_time_s_median": float(np.median(cycle)) if cycle else None,
         "failure_modes": {m: modes.get(m, 0) for m in FAILURE_MODES if modes.get(m, 0)},
         "seeds": [min(r["seed"] for r in rows), max(r["seed"] for r in rows)],
+        "holding_torque_frac_max": np.max([r["holding_torque_frac"] for r in rows], axis=0).round(3).tolist()
+        if all("holding_torque_frac" in r for r in rows) else None,
+        "suction_failures": sum(r.get("suction_failures", 0) for r in rows),
         "stage_rates": {
             "suction_acquired": sum(r["t_suction_acquired"] is not None for r in rows) / n,
             "insertion_entered": sum(r["t_insertion_entered"] is not None for r in rows) / n,

@@ -197,7 +197,7 @@ class ScriptedInstaller(_PanelPoseMixin):
         self.depth_hist.append(depth)
         if depth > -0.0015:
             self._set("seat")
-            return self._seat_action()
+            return self._seat()   # with its binding check, from the first seating step
         # Binding felt through the grip (the installer's hands feel the panel twist in the
         # cup): back off before the seal peels.
         pull, shear, moment = self.env.suction_wrench()
