@@ -214,7 +214,7 @@ class OSC:
         weld = self.weld_force_mean
         weld[:] = 0.0
         n_weld = 0
-        for _ in range(n_substeps):
+        for k in range(n_substeps):
             step1(m, data)
             jac_site(m, data, jacp, jacr, site)
             full_m(m, data, M)
@@ -224,9 +224,11 @@ class OSC:
             step2(m, data)
             if hold > 1:  # zero-order hold of the torque for the remaining physics steps
                 step(m, data, hold - 1)
-            if com is not None and data.ne >= 6:
-                # The suction weld is the model's only equality: its 6 rows come first.
-                weld += data.efc_force[:6]  # re-read: the efc arrays resize every step
+            if com is not None and k % 5 == 4 and data.ne >= 6:
+                # Every 5th update (10 samples a step, every 10 ms): the suction weld is the
+                # model's only equality, its 6 rows come first; re-read the array, the efc
+                # arrays resize every step.
+                weld += data.efc_force[:6]
                 n_weld += 1
         if n_weld:
             weld /= n_weld
