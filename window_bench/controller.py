@@ -43,6 +43,34 @@ class OSCGains:
         ])
 
 
+# Small dense products written out: numba's `@` goes through SciPy's BLAS (a dependency we
+# avoid), and for 7 x 7 matrices plain loops are as fast.
+@numba.njit(cache=True)
+def _mm(a, b):
+    n, k = a.shape
+    m = b.shape[1]
+    out = np.zeros((n, m))
+    for i in range(n):
+        for j in range(m):
+            s = 0.0
+            for t in range(k):
+                s += a[i, t] * b[t, j]
+            out[i, j] = s
+    return out
+
+
+@numba.njit(cache=True)
+def _mv(a, x):
+    n, k = a.shape
+    out = np.zeros(n)
+    for i in range(n):
+        s = 0.0
+        for t in range(k):
+            s += a[i, t] * x[t]
+        out[i] = s
+    return out
+
+
 @numba.njit(cache=True)
 def _cholesky(a):
     n = a.shape[0]
@@ -105,7 +133,7 @@ def osc_torque(jacp, jacr, M, bias, q, qd, pos, mat, target_pos, target_mat,
         err[3] += 0.5 * (a1 * b2 - a2 * b1)
         err[4] += 0.5 * (a2 * b0 - a0 * b2)
         err[5] += 0.5 * (a0 * b1 - a1 * b0)
-    vel = J @ qd[:n].copy()
+    vel = _mv(J, qd[:n].copy())
     # Velocity governor: as the fastest joint approaches the limit, fade out the task-space
     # spring (keep its damping), so the arm stops accelerating instead of relying on joint
     # brakes that the wrist's 12 N m cannot supply.
@@ -127,20 +155,20 @@ def osc_torque(jacp, jacr, M, bias, q, qd, pos, mat, target_pos, target_mat,
         acc[3 + i] = s * kpr * rot_s * err[3 + i] - kdr * vel[3 + i]
     L = _cholesky(Mr)
     MinvJT = _chol_solve(L, J.T.copy())           # 7 x 6
-    JMJ = J @ MinvJT                               # 6 x 6
+    JMJ = _mm(J, MinvJT)                           # 6 x 6
     for i in range(6):
         JMJ[i, i] += 1e-6
     Lam_L = _cholesky(JMJ)
     Lam = _chol_solve(Lam_L, np.eye(6))            # operational-space inertia
-    F = Lam @ acc
-    tau = J.T @ F
+    F = _mv(Lam, acc)
+    tau = _mv(J.T.copy(), F)
     # Nullspace PD in acceleration units, projected with the dynamically consistent N.
     qacc_null = np.empty(n)
     for i in range(n):
         qacc_null[i] = kpn * (q_null[i] - q[i]) - kdn * qd[i]
-    t_null = Mr @ qacc_null
-    Jbar = MinvJT @ Lam                            # 7 x 6
-    t_null = t_null - J.T @ (Jbar.T @ t_null)
+    t_null = _mv(Mr, qacc_null)
+    Jbar = _mm(MinvJT, Lam)                        # 7 x 6
+    t_null = t_null - _mv(J.T.copy(), _mv(Jbar.T.copy(), t_null))
     # Everything but the task term, with the velocity brakes.
     rest = np.empty(n)
     for i in range(n):
