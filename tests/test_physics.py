@@ -385,3 +385,22 @@ def test_broken_grip_needs_a_fresh_vacuum_command(make_env, monkeypatch):
     if u.suction_valid():
         env.step(HOLD)
         assert u.suction_engaged
+
+
+def test_physics_divergence_truncates_instead_of_crashing(make_env):
+    env = make_env(B)
+    u = env.unwrapped
+    env.reset(seed=0)
+    # Kick the panel to an absurd speed: the step must end the episode as truncated with
+    # sim_unstable, roll the state back to the last good one, and return finite values.
+    a = u.scene.panel_dof_adr
+    u.data.qvel[a:a + 3] = [1e4, -1e4, 1e4]
+    obs, reward, terminated, truncated, info = env.step(IDLE)
+    assert truncated and not terminated and reward == 0.0
+    assert info["sim_unstable"] and info["failure_mode"] == "sim_unstable"
+    assert all(np.all(np.isfinite(v)) for v in obs.values())
+    assert np.all(np.isfinite(u.data.qpos)) and np.abs(u.data.qvel).max() < 20
+    # The env stays usable: a reset starts a clean episode.
+    obs, info = env.reset(seed=1)
+    obs, reward, terminated, truncated, info = env.step(IDLE)
+    assert not truncated and not info["sim_unstable"]

@@ -352,7 +352,7 @@ class WindowInstallEnv(gym.Env):
             self._set_latch(True)
         elif not g and self._latched:
             self._set_latch(False)
-        qpos0, qvel0 = d.qpos.copy(), d.qvel.copy()
+        qpos0 = d.qpos.copy()
         self.osc.run(d, S.CONTROL_SUBSTEPS,
                      payload_body=sc.panel_body if self._latched else -1,
                      payload_mass=self.cfg.mass)
@@ -362,7 +362,9 @@ class WindowInstallEnv(gym.Env):
                     or float(np.abs(d.qvel).max()) > 20.0)  # 20 m/s or rad/s: no real motion here
         if unstable:
             self._warnings = int(d.warning.number.sum())
-            d.qpos[:], d.qvel[:] = qpos0, qvel0
+            # Roll back to the pose at the start of the step, at rest: the last observation of
+            # the truncated episode is then finite and physical.
+            d.qpos[:], d.qvel[:] = qpos0, 0.0
             d.qacc_warmstart[:] = 0
             mujoco.mj_forward(m, d)
             self._sim_unstable = True
