@@ -5,8 +5,10 @@
   ``env.step(action)``, so its logs are valid demonstrations. Phases: acquire (B), lift,
   transport, align, insert compliantly, detect stalls (wedging, jamming) and recover with
   retract-pivot-reinsert, seat and settle.
-* ``StraightPush`` - the naive controller: it assumes the nominal grasp, aligns the tool to
-  where the nominal grasp would put a seated panel, pushes straight in and never recovers.
+* ``StraightPush`` - the naive controller: it transports like the installer, aligns the
+  panel once to its estimate of the seat (the same imperfect eye as the installer's), then
+  pushes straight along the tool axis and never looks again: no stall detection, no
+  recovery.
 * ``RandomPolicy`` - uniform random actions.
 
 All three have ``reset()`` and ``act(obs) -> np.ndarray`` of shape (7,).
@@ -92,7 +94,6 @@ class ScriptedInstaller(_PanelPoseMixin):
         self.depth_hist: list[float] = []
         self.recoveries = 0
         self.phase_steps = 0
-        self.pivot_sign = 1.0
         self.events: list[tuple[int, str]] = []
         self.t = 0
 
@@ -264,11 +265,13 @@ class ScriptedInstaller(_PanelPoseMixin):
 class StraightPush(_PanelPoseMixin):
     """Naive baseline: align to the nominal target once, push straight, no recovery.
 
-    It acquires and transports like the installer, then aligns the panel with the seated
-    pose only until the error is within ``align_tol`` (a single coarse check, as a scripted
-    cell would do), and from then on pushes along the tool axis with constant increments.
-    The OSC target is re-based on the measured pose every step, so contact deflections are
-    kept, never corrected: there is no stall detection and no retract-pivot-reinsert.
+    It acquires and transports like the installer, then aligns the panel, 12 cm in front of
+    the seat, with its estimate of the seat: the seat plus a per-episode uniform error of up
+    to ``align_error_mm`` laterally and ``align_error_deg`` about each axis (the installer's
+    eye; the same draw for the same seed). From then on it pushes along the tool axis with
+    constant increments and never looks again. The OSC target is re-based on the measured
+    pose every step, so contact deflections are kept, never corrected: there is no stall
+    detection and no retract-pivot-reinsert.
     """
 
     PUSH = 0.2   # x 0.025 m = 5 mm per step along the tool axis
