@@ -301,3 +301,32 @@ def test_render_rgb_array(make_env):
     plain = make_env("WindowInstall-A-v0")
     plain.reset(seed=0)
     assert plain.render() is None
+
+
+@pytest.mark.parametrize("kwargs,needle", [
+    ({"panel_width": 0.7}, "panel_width=0.7 is outside the supported range [0.3, 0.6]"),
+    ({"panel_height": 0.2}, "panel_height=0.2 is outside the supported range [0.3, 0.6]"),
+    ({"clearance": 0.0}, "clearance=0.0 is outside the supported range [0.0005, 0.02]"),
+    ({"panel_mass": 9.0}, "panel_mass=9.0 is outside [0.2, 5.0] kg"),
+    ({"experiment": "C"}, "experiment must be 'A' or 'B', got 'C'"),
+    ({"obs_mode": "rgb"}, "obs_mode='rgb'"),
+    ({"render_mode": "human"}, "render_mode='human'"),
+    ({"image_size": 8}, "image_size=8 is outside [16, 512]"),
+])
+def test_bad_constructor_arguments_name_the_value_and_range(kwargs, needle):
+    from window_bench.env import WindowInstallEnv
+    with pytest.raises(ValueError) as exc:
+        WindowInstallEnv(**kwargs)
+    assert needle in str(exc.value)
+
+
+def test_clearance_kwarg_resizes_the_opening():
+    from window_bench.env import WindowInstallEnv
+    import mujoco
+    for c in (0.002, 0.005):
+        env = WindowInstallEnv(experiment="A", clearance=c)
+        m = env.model
+        left = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "buck_jamb_left")
+        right = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "buck_jamb_right")
+        inner = (m.geom_pos[right, 0] - m.geom_size[right, 0]) - (m.geom_pos[left, 0] + m.geom_size[left, 0])
+        assert inner == pytest.approx(0.5 + 2 * c, abs=1e-9)

@@ -120,7 +120,9 @@ class SceneConfig:
     def __post_init__(self):
         if self.experiment not in ("A", "B"):
             raise ValueError(f"experiment must be 'A' or 'B', got {self.experiment!r}")
-        for name, lo, hi in (("panel_width", 0.3, 0.7), ("panel_height", 0.3, 0.7),
+        # Up to 0.6 m: a larger panel placed at the edge of the ground region (y = -0.3 m,
+        # yaw 15 deg) would start inside the wall.
+        for name, lo, hi in (("panel_width", 0.3, 0.6), ("panel_height", 0.3, 0.6),
                              ("clearance", 0.0005, 0.02), ("panel_thickness", 0.01, 0.08)):
             v = getattr(self, name)
             if not (lo <= v <= hi):
