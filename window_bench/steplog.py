@@ -1,0 +1,157 @@
+"""The 10 Hz step log of one episode, whoever issued each action.
+
+Section 3.2 of the paper records interaction at the 10 Hz environment step as
+``(s_t, a_t, r_t, s_{t+1})``, where ``a_t`` is the *executed* action regardless of its
+provenance: a teleoperated demonstration, the policy, or an installer takeover. All learning
+quantities (chunk transitions, Bellman backups, intervention statistics) are defined on this
+step index. :class:`EpisodeLog` holds one complete episode in that form; chunked transitions
+(Eq. 4) are built from it by :func:`window_bench.chunks.chunk_transitions`.
+
+Conventions:
+
+* ``observations`` has ``T + 1`` rows ``s_0 .. s_T`` (flat vectors); every other per-step
+  field has ``T`` rows, step ``t`` covering the transition ``s_t -> s_{t+1}``.
+* An episode log is complete: exactly one of ``terminated`` / ``truncated`` is set, and only
+  on the last step ``T - 1``. ``terminated`` means the MDP ended (seating accepted; no
+  bootstrap); ``truncated`` means the time limit cut it (bootstrap from ``s_T``).
+* ``provenance[t]`` is one of :data:`PROVENANCES`; ``takeover_kind[t]`` is one of
+  :data:`TAKEOVER_KINDS` and is ``""`` unless ``provenance[t] == "takeover"``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+PROVENANCES = ("demo", "policy", "takeover")
+TAKEOVER_KINDS = ("", "safety", "coverage")
+
+#: Action dimension of the shared interface: 6-D pose increment + vacuum command.
+ACTION_DIM = 7
+#: Duration of one environment step in seconds (10 Hz).
+STEP_DT = 0.1
+
+
+@dataclass
+class EpisodeLog:
+    """One episode's step log as numpy arrays (see the module docstring for conventions).
+
+    The constructor converts array-likes with ``np.asarray``: float fields to float32,
+    ``provenance`` / ``takeover_kind`` to numpy string arrays. Booleans are not cast, so
+    :meth:`validate` can reject a non-boolean ``terminated`` / ``truncated``. The
+    constructor does not validate; call :meth:`validate`.
+    """
+
+    observations: np.ndarray  # (T+1, obs_dim) float32
+    actions: np.ndarray  # (T, 7) float32, executed
+    rewards: np.ndarray  # (T,) float32
+    terminated: np.ndarray  # (T,) bool
+    truncated: np.ndarray  # (T,) bool
+    provenance: np.ndarray  # (T,) str from PROVENANCES
+    takeover_kind: np.ndarray  # (T,) str from TAKEOVER_KINDS
+    episode_id: int = 0
+    env_id: str = ""
+    seed: int = 0
+
+    def __post_init__(self):
+        self.observations = np.asarray(self.observations, dtype=np.float32)
+        self.actions = np.asarray(self.actions, dtype=np.float32)
+        self.rewards = np.asarray(self.rewards, dtype=np.float32)
+        self.terminated = np.asarray(self.terminated)
+        self.truncated = np.asarray(self.truncated)
+        self.provenance = np.asarray(self.provenance).astype(str)
+        self.takeover_kind = np.asarray(self.takeover_kind).astype(str)
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def T(self) -> int:
+        """Number of steps (transitions) in the episode."""
+        return int(np.asarray(self.rewards).shape[0])
+
+    @property
+    def step_index(self) -> np.ndarray:
+        """``np.arange(T)``: the 10 Hz step index of each transition."""
+        return np.arange(self.T)
+
+    @property
+    def time_s(self) -> np.ndarray:
+        """Time of each step's start in seconds: ``step_index * 0.1``."""
+        return self.step_index * STEP_DT
+
+    # ------------------------------------------------------------------ checks
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the field and the problem if the log is malformed."""
+        obs = np.asarray(self.observations)
+        act = np.asarray(self.actions)
+        rew = np.asarray(self.rewards)
+        term = np.asarray(self.terminated)
+        trunc = np.asarray(self.truncated)
+        prov = np.asarray(self.provenance)
+        kind = np.asarray(self.takeover_kind)
+
+        # --- shapes: T is taken from rewards; everything else must agree with it.
+        if rew.ndim != 1:
+            raise ValueError(f"EpisodeLog.rewards: expected shape (T,), got {rew.shape}")
+        T = rew.shape[0]
+        if T < 1:
+            raise ValueError("EpisodeLog.rewards: episode has no steps (T = 0)")
+        for name, arr in (("terminated", term), ("truncated", trunc),
+                          ("provenance", prov), ("takeover_kind", kind)):
+            if arr.shape != (T,):
+                raise ValueError(f"EpisodeLog.{name}: expected shape ({T},) to match "
+                                 f"rewards (T = {T}), got {arr.shape}")
+        if act.ndim != 2 or act.shape[1] != ACTION_DIM:
+            raise ValueError(f"EpisodeLog.actions: expected shape (T, {ACTION_DIM}), "
+                             f"got {act.shape}")
+        if act.shape[0] != T:
+            raise ValueError(f"EpisodeLog.actions: expected {T} rows to match rewards "
+                             f"(T = {T}), got {act.shape[0]}")
+        if obs.ndim != 2 or obs.shape[1] < 1:
+            raise ValueError(f"EpisodeLog.observations: expected shape (T+1, obs_dim), "
+                             f"got {obs.shape}")
+        if obs.shape[0] != T + 1:
+            raise ValueError(f"EpisodeLog.observations: expected T+1 = {T + 1} rows "
+                             f"(s_0..s_T), got {obs.shape[0]}")
+
+        # --- values
+        for name, arr in (("observations", obs), ("actions", act), ("rewards", rew)):
+            if not np.issubdtype(arr.dtype, np.floating):
+                raise ValueError(f"EpisodeLog.{name}: expected a float array, got {arr.dtype}")
+            bad = ~np.isfinite(arr)
+            if bad.any():
+                where = np.argwhere(bad)[0]
+                raise ValueError(f"EpisodeLog.{name}: non-finite value {arr[tuple(where)]} "
+                                 f"at index {tuple(int(i) for i in where)}")
+
+        # --- episode end flags
+        for name, arr in (("terminated", term), ("truncated", trunc)):
+            if arr.dtype != np.bool_:
+                raise ValueError(f"EpisodeLog.{name}: expected a bool array, got {arr.dtype}")
+            early = np.flatnonzero(arr[:-1])
+            if early.size:
+                raise ValueError(f"EpisodeLog.{name}: set at step {int(early[0])}, but only "
+                                 f"the last step (T-1 = {T - 1}) may end the episode")
+        if term[-1] and trunc[-1]:
+            raise ValueError("EpisodeLog.terminated/truncated: both set on the last step; "
+                             "exactly one must be")
+        if not (term[-1] or trunc[-1]):
+            raise ValueError("EpisodeLog.terminated/truncated: neither set on the last step; "
+                             "an episode log must be complete (exactly one set)")
+
+        # --- provenance
+        unknown = ~np.isin(prov, PROVENANCES)
+        if unknown.any():
+            i = int(np.flatnonzero(unknown)[0])
+            raise ValueError(f"EpisodeLog.provenance: unknown value {str(prov[i])!r} at step "
+                             f"{i}; allowed {PROVENANCES}")
+        unknown = ~np.isin(kind, TAKEOVER_KINDS)
+        if unknown.any():
+            i = int(np.flatnonzero(unknown)[0])
+            raise ValueError(f"EpisodeLog.takeover_kind: unknown value {str(kind[i])!r} at "
+                             f"step {i}; allowed {TAKEOVER_KINDS}")
+        stray = (kind != "") & (prov != "takeover")
+        if stray.any():
+            i = int(np.flatnonzero(stray)[0])
+            raise ValueError(f"EpisodeLog.takeover_kind: {str(kind[i])!r} at step {i} whose "
+                             f"provenance is {str(prov[i])!r}, not 'takeover'")
