@@ -171,8 +171,10 @@ class WindowInstallEnv(gym.Env):
         self._steps = 0
         self._latched = False
         self._contact_proxy = np.zeros(6)
-        self._last_cmd = np.zeros(6)
         self._randomization: dict = {}
+        self._sim_unstable = False
+        self._suction_lockout = False
+        self._suction_failures = 0
         self._needs_reset = True
 
     # ------------------------------------------------------------------ postures
@@ -250,7 +252,6 @@ class WindowInstallEnv(gym.Env):
         self._stages.suction_acquired = self._latched  # A: Pr(S) = 100 % by design
         self._stages.latched = self._latched
         self._contact_proxy[:] = 0
-        self._last_cmd[:] = 0
         self._sim_unstable = False
         self._suction_lockout = False
         self._suction_failures = 0
@@ -447,10 +448,10 @@ class WindowInstallEnv(gym.Env):
             "normal_cos": acc.normal_cos,
             "panel_speed": acc.speed,
             "cycle_time_s": self._steps * CONTROL_DT,
-            "sim_unstable": self._sim_unstable if hasattr(self, "_sim_unstable") else False,
+            "sim_unstable": self._sim_unstable,
             # The same keys at reset and at every step (Minari requires it).
             "suction_failed": False,
-            "suction_failures": getattr(self, "_suction_failures", 0),
+            "suction_failures": self._suction_failures,
             "failure_mode": "",
             "is_success": False,
         }
