@@ -286,7 +286,6 @@ def _build_arena(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
     if cfg.experiment == "A":
         rack = wb.add_body()
         rack.name = "rack"
-        tilt = np.deg2rad(RACK_TILT_DEG)
         rx, ry = RACK_CENTER
         half_w = cfg.panel_width / 2 + 0.05
         _add_box(rack, "rack_ledge", [0.06, half_w, RACK_LEDGE_Z / 2], [rx + 0.03, ry, RACK_LEDGE_Z / 2], STOP_RGBA)
@@ -296,9 +295,7 @@ def _build_arena(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
         back_c = center - normal * (cfg.panel_thickness / 2 + RACK_GAP + 0.01)
         back_c = back_c - mat[:, 1] * 0.05
         _add_box(rack, "rack_back", [half_w, cfg.panel_height / 2 - 0.03, 0.01], back_c, WOOD,
-                 quat=_quat_from_mat(np.column_stack([mat[:, 0], mat[:, 1], mat[:, 2]])))
-        legz = RACK_LEDGE_Z + cfg.panel_height * np.cos(tilt) * 0.45
-        _add_box(rack, "rack_strut", [0.015, 0.015, legz / 2], [back_c[0] + 0.12, ry, legz / 2], STOP_RGBA)
+                 quat=_quat_from_mat(mat))
 
 
 def _build_robot(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
@@ -328,7 +325,7 @@ def _build_robot(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
         g.name = f"robot0_link{i + 1}_collision"
         g.type = mujoco.mjtGeom.mjGEOM_CAPSULE
         r = IIWA_LINK_RADIUS[i]
-        g.fromto = [0, 0, 0.0, 0, 0, max(length - 0.0, 0.01)] if i < 6 else [0, 0, 0, 0, 0, length]
+        g.fromto = [0, 0, 0, 0, 0, length]
         g.size = [r * 0.8 if i == 6 else r, 0, 0]
         g.rgba = ROBOT_RGBA if i % 2 == 0 else (0.85, 0.85, 0.85, 1)
         g.contype, g.conaffinity = 0, 1   # collides with the world, never with itself
