@@ -15,7 +15,7 @@ OBS_DIM = 4
 ENV_ID = "WindowBench-v0"
 
 
-def _episode(T, *, episode_id, seed, end="terminated", takeover=None, rng=None):
+def _episode(T, *, episode_id, seed, end="terminated", takeover=None, rng=None, h=1):
     """A hand-built log: demo/policy steps, optionally a takeover block mid-episode."""
     rng = rng or np.random.default_rng(episode_id)
     prov = np.array(["policy"] * T, dtype=object)
@@ -36,6 +36,9 @@ def _episode(T, *, episode_id, seed, end="terminated", takeover=None, rng=None):
         terminated=term, truncated=trunc,
         provenance=prov.astype(str), takeover_kind=kind.astype(str),
         episode_id=episode_id, env_id=ENV_ID, seed=seed,
+        chunk_horizon=h, stage_flags=np.arange(T)[:, None] >= np.array([0, T // 2, T - 1]),
+        randomization={"friction_buck": 0.5 + episode_id / 100, "solref_tc": 0.02},
+        operator=("expert", "novice", "")[episode_id % 3],
     )
 
 
@@ -44,7 +47,8 @@ def episodes():
     return [
         _episode(3, episode_id=0, seed=11, end="terminated"),
         _episode(8, episode_id=7, seed=-3, end="truncated", takeover=(2, 5, "safety")),
-        _episode(12, episode_id=42, seed=2**40, end="terminated", takeover=(6, 9, "coverage")),
+        _episode(12, episode_id=42, seed=2**40, end="terminated", takeover=(6, 9, "coverage"),
+                 h=4),
         _episode(5, episode_id=3, seed=0, end="truncated", takeover=(1, 2, "safety")),
     ]
 
@@ -67,6 +71,12 @@ def _assert_same(a: EpisodeLog, b: EpisodeLog):
     assert b.terminated.dtype == np.bool_ and b.truncated.dtype == np.bool_
     assert b.provenance.dtype.kind == "U" and b.takeover_kind.dtype.kind == "U"
     assert (a.episode_id, a.env_id, a.seed) == (b.episode_id, b.env_id, b.seed)
+    assert (a.chunk_horizon, a.operator, a.randomization) == (
+        b.chunk_horizon, b.operator, b.randomization)
+    np.testing.assert_array_equal(a.chunk_index, b.chunk_index)
+    np.testing.assert_array_equal(a.policy_chunk_start, b.policy_chunk_start)
+    np.testing.assert_array_equal(a.stage_flags, b.stage_flags)
+    assert b.stage_flags.dtype == np.bool_ and b.policy_chunk_start.dtype == np.bool_
     assert type(b.episode_id) is int and type(b.seed) is int
 
 
@@ -159,11 +169,11 @@ def test_wrong_schema_version_names_both(tmp_path, episodes):
     assert meta["schema_version"] == SCHEMA_VERSION
     meta["schema_version"] = 99
     meta_file.write_text(json.dumps(meta))
-    with pytest.raises(ValueError, match=r"schema_version 99, expected 1"):
+    with pytest.raises(ValueError, match=rf"schema_version 99, expected {SCHEMA_VERSION}"):
         load_episodes("old-v0", data_path=root)
     del meta["schema_version"]
     meta_file.write_text(json.dumps(meta))
-    with pytest.raises(ValueError, match=r"schema_version None, expected 1"):
+    with pytest.raises(ValueError, match=rf"schema_version None, expected {SCHEMA_VERSION}"):
         load_episodes("old-v0", data_path=root)
 
 

@@ -12,9 +12,13 @@ Layout of one episode in the Minari dataset (``T`` steps):
 * ``infos`` follow Minari's convention of one row per observation (T+1 rows): row 0 is the
   reset info and row ``t + 1`` the info returned by step ``t``. Keys: ``step_index`` (int64;
   ``-1`` at reset, then ``0 .. T-1``), ``provenance`` and ``takeover_kind`` (strings, ``""`` at
-  reset; Minari stores them as UTF-8 and hands them back as ``bytes``).
+  reset; Minari stores them as UTF-8 and hands them back as ``bytes``), ``time_s`` (float,
+  start time of the step, ``-0.1`` at reset), ``chunk_index`` (int64, ``-1`` at reset),
+  ``policy_chunk_start`` and the stage flags ``suction_acquired`` / ``insertion_entered`` /
+  ``seated`` (bool, False at reset).
 * Episode-level attributes: ``seed`` (Minari's own) and ``options/episode_id``,
-  ``options/env_id``.
+  ``options/env_id``, ``options/chunk_horizon``, ``options/operator`` and
+  ``options/randomization`` (a JSON string of the Table 9 draws).
 
 Dataset metadata (``metadata.json``) carries ``schema_version`` (:data:`SCHEMA_VERSION`),
 ``window_bench_env_id``, ``obs_dim`` and every key of the caller's ``metadata``.
@@ -35,10 +39,12 @@ from pathlib import Path
 
 import numpy as np
 
-from window_bench.steplog import ACTION_DIM, PROVENANCES, TAKEOVER_KINDS, EpisodeLog
+from window_bench.steplog import (ACTION_DIM, PROVENANCES, STAGE_FLAGS, STEP_DT, TAKEOVER_KINDS,
+                                  EpisodeLog)
 
-#: Version of the on-disk layout described in the module docstring.
-SCHEMA_VERSION = 1
+#: Version of the on-disk layout described in the module docstring (2: chunk grid, stage
+#: flags, time, operator and randomization added).
+SCHEMA_VERSION = 2
 
 _TMP_PREFIX = "_window_bench_tmp_"
 _METADATA_FILE = "metadata.json"
@@ -115,10 +121,17 @@ def _to_buffer(ep: EpisodeLog):
         "step_index": np.concatenate([[-1], np.arange(T)]).astype(np.int64),
         "provenance": [""] + [str(p) for p in ep.provenance],
         "takeover_kind": [""] + [str(k) for k in ep.takeover_kind],
+        "time_s": (np.arange(-1, T) * STEP_DT).astype(np.float64),
+        "chunk_index": np.concatenate([[-1], ep.chunk_index]).astype(np.int64),
+        "policy_chunk_start": np.concatenate([[False], ep.policy_chunk_start]).astype(bool),
     }
+    for j, name in enumerate(STAGE_FLAGS):
+        infos[name] = np.concatenate([[False], ep.stage_flags[:, j]]).astype(bool)
     return EpisodeBuffer(
         seed=int(ep.seed),
-        options={"episode_id": int(ep.episode_id), "env_id": str(ep.env_id)},
+        options={"episode_id": int(ep.episode_id), "env_id": str(ep.env_id),
+                 "chunk_horizon": int(ep.chunk_horizon), "operator": str(ep.operator),
+                 "randomization": json.dumps(ep.randomization, sort_keys=True)},
         observations=np.ascontiguousarray(ep.observations, dtype=np.float32),
         actions=np.ascontiguousarray(ep.actions, dtype=np.float32),
         rewards=np.asarray(ep.rewards, dtype=np.float32),
@@ -290,10 +303,12 @@ def load_episodes(dataset_id: str, data_path: str | os.PathLike | None = None
         if int(em.get("total_steps", T)) != T:
             raise ValueError(f"{where}: total_steps attribute {em.get('total_steps')} != {T}")
         infos = data.infos or {}
-        missing = {"step_index", "provenance", "takeover_kind"} - set(infos)
+        keys = ("step_index", "provenance", "takeover_kind", "chunk_index",
+                "policy_chunk_start", *STAGE_FLAGS)
+        missing = set(keys) - set(infos)
         if missing:
             raise ValueError(f"{where}: infos lack {sorted(missing)}")
-        for key in ("step_index", "provenance", "takeover_kind"):
+        for key in keys:
             if np.shape(infos[key]) != (T + 1,):
                 raise ValueError(f"{where}: infos[{key!r}] has shape {np.shape(infos[key])}, "
                                  f"expected {(T + 1,)}")
@@ -317,9 +332,16 @@ def load_episodes(dataset_id: str, data_path: str | os.PathLike | None = None
         options = em.get("options") or {}
         if "episode_id" not in options or em.get("seed") is None:
             raise ValueError(f"{where}: episode_id / seed attributes missing")
-        env_id = options.get("env_id", "")
-        if isinstance(env_id, bytes):
-            env_id = env_id.decode("utf-8")
+        def text(key):
+            v = options.get(key, "")
+            return v.decode("utf-8") if isinstance(v, (bytes, np.bytes_)) else str(v)
+
+        env_id = text("env_id")
+        try:
+            randomization = json.loads(text("randomization") or "{}")
+            chunk_horizon = int(options.get("chunk_horizon", 1))
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"{where}: bad episode attributes: {e}") from None
         ep = EpisodeLog(
             observations=obs.astype(np.float32, copy=False),
             actions=act.astype(np.float32, copy=False),
@@ -331,6 +353,13 @@ def load_episodes(dataset_id: str, data_path: str | os.PathLike | None = None
             episode_id=int(options["episode_id"]),
             env_id=str(env_id),
             seed=int(em["seed"]),
+            chunk_horizon=chunk_horizon,
+            chunk_index=np.asarray(infos["chunk_index"])[1:].astype(np.int64),
+            policy_chunk_start=np.asarray(infos["policy_chunk_start"])[1:].astype(bool),
+            stage_flags=np.stack([np.asarray(infos[k])[1:].astype(bool) for k in STAGE_FLAGS],
+                                 axis=1),
+            randomization=randomization,
+            operator=text("operator"),
         )
         try:
             ep.validate()

@@ -16,11 +16,21 @@ Conventions:
   bootstrap); ``truncated`` means the time limit cut it (bootstrap from ``s_T``).
 * ``provenance[t]`` is one of :data:`PROVENANCES`; ``takeover_kind[t]`` is one of
   :data:`TAKEOVER_KINDS` and is ``""`` unless ``provenance[t] == "takeover"``.
+* ``chunk_index[t] = t // chunk_horizon`` is the step's cell on the fixed chunk grid;
+  ``policy_chunk_start[t]`` is True where the policy proposed a new chunk (only on grid
+  boundaries, and only on ``"policy"`` steps). ``stage_flags[t]`` holds the cumulative stage
+  events of :data:`STAGE_FLAGS` after step ``t``.
+* Per episode: ``env_id``, ``seed``, ``randomization`` (Table 9 values drawn at reset),
+  ``operator`` (the operator profile that produced demos/takeovers, ``""`` if none) and
+  ``chunk_horizon``.
+
+Optional fields left out of the constructor get defaults consistent with the rest (``h = 1``
+grid, policy chunk starts on every ``"policy"`` step, stage flags all False).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -31,6 +41,8 @@ TAKEOVER_KINDS = ("", "safety", "coverage")
 ACTION_DIM = 7
 #: Duration of one environment step in seconds (10 Hz).
 STEP_DT = 0.1
+#: Stage events logged per step (the env's ``info`` keys of the same names).
+STAGE_FLAGS = ("suction_acquired", "insertion_entered", "seated")
 
 
 @dataclass
@@ -53,6 +65,12 @@ class EpisodeLog:
     episode_id: int = 0
     env_id: str = ""
     seed: int = 0
+    chunk_horizon: int = 1
+    chunk_index: np.ndarray | None = None  # (T,) int64, t // chunk_horizon
+    policy_chunk_start: np.ndarray | None = None  # (T,) bool
+    stage_flags: np.ndarray | None = None  # (T, 3) bool, STAGE_FLAGS order
+    randomization: dict = field(default_factory=dict)
+    operator: str = ""
 
     def __post_init__(self):
         self.observations = np.asarray(self.observations, dtype=np.float32)
@@ -62,6 +80,24 @@ class EpisodeLog:
         self.truncated = np.asarray(self.truncated)
         self.provenance = np.asarray(self.provenance).astype(str)
         self.takeover_kind = np.asarray(self.takeover_kind).astype(str)
+        T = int(self.rewards.shape[0]) if self.rewards.ndim == 1 else 0
+        h = self.chunk_horizon
+        if self.chunk_index is None:
+            hh = h if isinstance(h, (int, np.integer)) and h >= 1 else 1
+            self.chunk_index = np.arange(T, dtype=np.int64) // hh
+        if self.policy_chunk_start is None:
+            hh = h if isinstance(h, (int, np.integer)) and h >= 1 else 1
+            on_grid = (np.arange(T) % hh) == 0
+            prev_policy = np.concatenate([[False], self.provenance[:-1] == "policy"])
+            # Default: a chunk starts on a grid boundary, or where control comes back to
+            # the policy (the convention of the rollout loop).
+            self.policy_chunk_start = (self.provenance == "policy") & (on_grid | ~prev_policy)
+        if self.stage_flags is None:
+            self.stage_flags = np.zeros((T, len(STAGE_FLAGS)), dtype=bool)
+        self.chunk_index = np.asarray(self.chunk_index)
+        self.policy_chunk_start = np.asarray(self.policy_chunk_start)
+        self.stage_flags = np.asarray(self.stage_flags)
+        self.randomization = dict(self.randomization or {})
 
     # ------------------------------------------------------------------ derived
     @property
@@ -155,3 +191,41 @@ class EpisodeLog:
             i = int(np.flatnonzero(stray)[0])
             raise ValueError(f"EpisodeLog.takeover_kind: {str(kind[i])!r} at step {i} whose "
                              f"provenance is {str(prov[i])!r}, not 'takeover'")
+        unkinded = (kind == "") & (prov == "takeover")
+        if unkinded.any():
+            i = int(np.flatnonzero(unkinded)[0])
+            raise ValueError(f"EpisodeLog.takeover_kind: empty at takeover step {i}; allowed "
+                             f"{TAKEOVER_KINDS[1:]}")
+
+        # --- chunk grid, stage flags, episode attributes
+        h = self.chunk_horizon
+        if isinstance(h, bool) or not isinstance(h, (int, np.integer)) or h < 1:
+            raise ValueError(f"EpisodeLog.chunk_horizon: {h!r} is not an integer >= 1")
+        ci = np.asarray(self.chunk_index)
+        if ci.shape != (T,) or not np.issubdtype(ci.dtype, np.integer):
+            raise ValueError(f"EpisodeLog.chunk_index: expected an int array of shape ({T},), "
+                             f"got {ci.dtype} {ci.shape}")
+        expected = np.arange(T) // int(h)
+        if not np.array_equal(ci, expected):
+            i = int(np.flatnonzero(ci != expected)[0])
+            raise ValueError(f"EpisodeLog.chunk_index: {int(ci[i])} at step {i}, the fixed grid "
+                             f"with chunk_horizon {int(h)} gives {int(expected[i])}")
+        pcs = np.asarray(self.policy_chunk_start)
+        if pcs.shape != (T,) or pcs.dtype != np.bool_:
+            raise ValueError(f"EpisodeLog.policy_chunk_start: expected a bool array of shape "
+                             f"({T},), got {pcs.dtype} {pcs.shape}")
+        bad = pcs & (prov != "policy")
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"EpisodeLog.policy_chunk_start: set at step {i} whose provenance "
+                             f"is {str(prov[i])!r}; only policy steps start policy chunks")
+        sf = np.asarray(self.stage_flags)
+        if sf.shape != (T, len(STAGE_FLAGS)) or sf.dtype != np.bool_:
+            raise ValueError(f"EpisodeLog.stage_flags: expected a bool array of shape "
+                             f"({T}, {len(STAGE_FLAGS)}) for {STAGE_FLAGS}, got {sf.dtype} "
+                             f"{sf.shape}")
+        if not isinstance(self.operator, str):
+            raise ValueError(f"EpisodeLog.operator: expected a str, got {self.operator!r}")
+        if not isinstance(self.randomization, dict):
+            raise ValueError(f"EpisodeLog.randomization: expected a dict, got "
+                             f"{type(self.randomization).__name__}")
