@@ -2,6 +2,8 @@
 
     bench install   --env WindowInstall-A-v0 --episodes 3      # scripted installer, verbose
     bench calibrate --env WindowInstall-A-v0 --episodes 100    # difficulty calibration
+    bench demos     --env WindowInstall-A-v0 --n 50 --out data # human-like demonstrations
+    bench supervise --env WindowInstall-A-v0 --controller random --operator novice
 """
 
 from __future__ import annotations
@@ -138,6 +140,46 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def cmd_demos(args) -> int:
+    from .demos import collect_demos
+
+    s = collect_demos(args.env, args.n, args.out, operator=args.operator, seed=args.seed,
+                      max_attempts=args.max_attempts, progress=True)
+    print(f"{s['kept']}/{s['attempts']} demonstrations succeeded "
+          f"({100 * s['success_rate']:.0f} %) on {args.env}, operator {args.operator}, "
+          f"seeds {args.seed}..{args.seed + s['attempts'] - 1}")
+    print(f"episode length {s['episode_seconds_mean']:.1f} s mean "
+          f"[{s['episode_seconds_min']:.1f}, {s['episode_seconds_max']:.1f}], "
+          f"{s['recoveries_mean']:.1f} recoveries per demo; "
+          f"{s['simulated_minutes_all_attempts']:.1f} simulated minutes, "
+          f"{s['wall_clock_s']:.0f} s wall clock")
+    if s["failure_modes"]:
+        print(f"discarded: {s['failure_modes']}")
+    print(f"wrote Minari dataset {s['dataset_id']!r} under {args.out}")
+    return 0 if s["kept"] == args.n else 1
+
+
+def cmd_supervise(args) -> int:
+    from .demos import measure_supervision
+
+    rows = []
+    for op in args.operator:
+        r = measure_supervision(args.env, args.controller, op, args.episodes, seed=args.seed,
+                                h=args.h)
+        rows.append(r)
+    print(f"| operator | controller | episodes | successes | takeovers / ep | takeover min "
+          f"| takeover share | safety cues | coverage |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['operator']} | {r['controller']} | {r['episodes']} | {r['successes']} | "
+              f"{r['takeovers_per_episode']:.1f} | {r['takeover_minutes']:.2f} | "
+              f"{100 * r['takeover_fraction']:.0f} % | {r['safety_cues']} | "
+              f"{r['coverage_interventions']} |")
+    if args.out:
+        atomic_write_text(args.out, json.dumps(rows, indent=1))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -157,6 +199,28 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--out", default="runs/calibration", help="results directory (resumes if present)")
     c.set_defaults(func=cmd_calibrate)
+    from .operators import OPERATORS
+
+    d = sub.add_parser("demos", help="collect successful human-like demonstrations (Minari)")
+    d.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
+    d.add_argument("--n", type=_positive, default=50, help="successful demonstrations to keep")
+    d.add_argument("--out", default="data", help="Minari datasets root (resumes if present)")
+    d.add_argument("--operator", choices=sorted(OPERATORS), default="average")
+    d.add_argument("--seed", type=int, default=0, help="seed of the first attempt")
+    d.add_argument("--max-attempts", type=_positive, default=None,
+                   help="give up after this many episodes (default 2 n)")
+    d.set_defaults(func=cmd_demos)
+    v = sub.add_parser("supervise", help="takeover counts and minutes of operator profiles "
+                                         "supervising a reference controller")
+    v.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
+    v.add_argument("--controller", choices=sorted(CONTROLLERS), default="random")
+    v.add_argument("--operator", choices=sorted(OPERATORS), nargs="+",
+                   default=["expert", "average", "novice"])
+    v.add_argument("--episodes", type=_positive, default=20)
+    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--h", type=_positive, default=10, help="chunk grid of the supervised policy")
+    v.add_argument("--out", help="write the rows to this JSON file")
+    v.set_defaults(func=cmd_supervise)
     return p
 
 

@@ -127,6 +127,32 @@ class ScriptedInstaller(_PanelPoseMixin):
         p, R = self.env.panel_pose()
         return float(np.linalg.norm(p - panel_pos)), float(np.linalg.norm(mat_to_rotvec(R.T @ panel_mat)))
 
+    # -------------------------------------------------------------- takeovers
+    def take_over(self) -> str:
+        """Pick up mid-episode from whatever state another actor left; returns the phase.
+
+        Suction off: re-acquire (approach). Panel held near or in the opening: recovery
+        (retract along the axis, re-square, then reinsert). Panel held low (on the ground or
+        the rack): lift. Otherwise: transport to the staging pose.
+        """
+        self.depth_hist = []
+        self.recoveries = 0
+        if not self.env.suction_engaged:
+            self._set("approach")
+            return self.phase
+        depth = self._depth()
+        if depth > -(self.PREINSERT_OFFSET + 0.03):
+            self.recoveries = 1
+            self._remeasure()   # a close look at the opening before re-squaring
+            self.retract_to = min(depth - self.RETRACT, -self.PREINSERT_OFFSET)
+            self._set("recover")
+        elif self.env.panel_pose()[0][2] < 0.25:
+            self.lift_start = self.env.panel_pose()[0].copy()
+            self._set("lift")
+        else:
+            self._set("transport")
+        return self.phase
+
     # -------------------------------------------------------------- policy
     def act(self, obs=None) -> np.ndarray:
         if self.phase is None:

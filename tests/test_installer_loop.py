@@ -1,0 +1,303 @@
+"""Installer-in-the-loop: the rollout's chunk grid under takeovers, takeover triggering on
+constructed situations, operator profiles, human-like demonstrations and their collection."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import window_bench  # noqa: F401  (registers the envs)
+from window_bench import scene as S
+from window_bench.chunks import chunk_transitions
+from window_bench.dataset import load_episodes
+from window_bench.demos import collect_demos, demo_dataset_id, measure_supervision
+from window_bench.effort import takeover_count
+from window_bench.installer import ScriptedInstaller
+from window_bench.operators import OPERATORS, HumanlikeInstaller, OperatorProfile, get_operator
+from window_bench.rollout import Rollout
+from window_bench.supervisor import (ENTRY_DEPTH, FLAT_DIM, FLAT_SLICES, InstallerSupervisor,
+                                     observation_fields)
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = gym.make("WindowInstall-A-v0", obs_mode="flat")
+    yield e
+    e.close()
+
+
+class ChunkCounter:
+    """Proposes chunks whose actions encode (proposal number, position) for bookkeeping."""
+
+    def __init__(self, h):
+        self.h, self.proposals = h, []
+
+    def reset(self, seed=None):
+        self.proposals = []
+
+    def act(self, obs):
+        k = len(self.proposals)
+        self.proposals.append(obs.copy())
+        chunk = np.zeros((self.h, 7), np.float32)
+        chunk[:, 0] = 0.01 * k            # tiny motions: the panel stays put
+        chunk[:, 1] = 0.001 * np.arange(self.h)
+        chunk[:, 6] = 1.0                 # keep the vacuum on
+        return chunk
+
+
+class Scripted:
+    """A takeover source that overrides exactly the given steps."""
+
+    def __init__(self, steps, kind="safety"):
+        self.steps, self.kind = set(steps), kind
+
+    def reset(self, env, seed=None):
+        self.t = -1
+
+    def intervene(self, obs, info):
+        self.t += 1
+        if self.t in self.steps:
+            return np.array([0, 0, 0, 0, 0, 0, 1.0], np.float32) + 0.5 * np.eye(7, dtype=np.float32)[3], self.kind
+        return None
+
+
+def _run(env, h, takeover_steps, T=14):
+    policy = ChunkCounter(h)
+    ro = Rollout(env, policy, supervisor=Scripted(takeover_steps), h=h)
+    ro.reset(seed=0)
+    for _ in range(T):
+        ro.step()
+    ro.done, ro.truncated = True, True      # cut the episode by hand for the log
+    return ro.episode_log(), policy
+
+
+def test_chunks_proposed_only_on_the_grid(env):
+    log, policy = _run(env, 4, [])
+    assert np.flatnonzero(log.policy_chunk_start).tolist() == [0, 4, 8, 12]
+    assert len(policy.proposals) == 4
+    # Executed actions are the chunk entries, in order.
+    np.testing.assert_allclose(log.actions[:, 0], 0.01 * (np.arange(14) // 4), atol=1e-7)
+    np.testing.assert_allclose(log.actions[:, 1], 0.001 * (np.arange(14) % 4), atol=1e-7)
+    assert log.chunk_index.tolist() == (np.arange(14) // 4).tolist()
+
+
+def test_mid_chunk_takeover_resumes_at_next_boundary(env):
+    # h = 4; takeover at steps 5, 6 (inside chunk 1); hand back at 7 -> hold at 7,
+    # the policy proposes again at 8 from the observation at 8.
+    log, policy = _run(env, 4, [5, 6])
+    prov = log.provenance.tolist()
+    assert prov[:5] == ["policy"] * 5
+    assert prov[5:8] == ["takeover"] * 3
+    assert prov[8:] == ["policy"] * 6
+    assert log.takeover_kind[5:8].tolist() == ["safety"] * 3
+    np.testing.assert_array_equal(log.actions[7], [0, 0, 0, 0, 0, 0, 1.0])   # the hold
+    assert np.flatnonzero(log.policy_chunk_start).tolist() == [0, 4, 8, 12]
+    np.testing.assert_array_equal(policy.proposals[2], log.observations[8])
+    assert takeover_count(log) == 1
+
+
+def test_takeover_across_boundaries_and_ending_on_one(env):
+    # Takeover 3..8 spans the boundaries 4 and 8; it ends (None) at 9 -> hold 9..11, policy at 12.
+    log, _ = _run(env, 4, range(3, 9))
+    assert np.flatnonzero(log.provenance == "takeover").tolist() == list(range(3, 12))
+    assert np.flatnonzero(log.policy_chunk_start).tolist() == [0, 12]
+    # Ending exactly on a boundary: takeover 4..7, the policy proposes at 8 with no hold.
+    log, _ = _run(env, 4, range(4, 8))
+    assert np.flatnonzero(log.provenance == "takeover").tolist() == [4, 5, 6, 7]
+    assert np.flatnonzero(log.policy_chunk_start).tolist() == [0, 8, 12]
+
+
+def test_rollout_log_feeds_chunk_transitions(env):
+    log, _ = _run(env, 4, [5, 6])
+    ch = chunk_transitions(log, 4, 0.99)
+    assert ch["any_takeover"].tolist() == [False, True, False, False]
+    np.testing.assert_array_equal(ch["actions"][1], log.actions[4:8])
+
+
+def test_rollout_rejects_bad_input(env):
+    with pytest.raises(ValueError, match="chunk horizon"):
+        Rollout(env, ChunkCounter(2), h=0)
+    with pytest.raises(ValueError, match="provenance"):
+        Rollout(env, ChunkCounter(2), provenance="takeover")
+    ro = Rollout(env, ChunkCounter(5), h=2)      # chunk longer than the grid
+    ro.reset(seed=0)
+    with pytest.raises(ValueError, match=r"policy.act returned shape \(5, 7\)"):
+        ro.step()
+    with pytest.raises(ValueError, match="obs_mode='flat'"):
+        Rollout(gym.make("WindowInstall-A-v0"), ChunkCounter(1)).reset(seed=0)
+
+
+# ---------------------------------------------------------------- supervisor cues
+def _obs(depth=-0.3, lateral=0.0, tilt=0.0, vacuum=1.0, blocked=0.0, eef=(0.5, 0.0, 0.5)):
+    o = np.zeros(FLAT_DIM, np.float32)
+    o[FLAT_SLICES["window_pos_rel"]] = depth * S.INSERTION_AXIS + np.array([lateral, 0, 0])
+    o[FLAT_SLICES["window_rot_rel"]] = [tilt, 0, 0]
+    o[FLAT_SLICES["robot0_vacuum"]] = vacuum
+    o[FLAT_SLICES["contact_proxy"]] = [blocked, 0, 0, 0, 0, 0]
+    o[FLAT_SLICES["robot0_eef_pos"]] = eef
+    return o
+
+
+def _feed(env, sup, observations, seed=0):
+    env.reset(seed=seed)
+    sup.reset(env, seed=seed)
+    out = []
+    for o in observations:
+        d = sup.intervene(o, {})
+        out.append(None if d is None else d[1])
+    return out
+
+
+def _profile(**kw):
+    base = dict(reaction_latency_steps=0, coverage_rate=0.0)
+    base.update(kw)
+    return OperatorProfile("test", **base)
+
+
+def test_flat_layout_matches_the_env(env):
+    obs, _ = env.reset(seed=3)
+    d = gym.make("WindowInstall-A-v0").reset(seed=3)[0]
+    f = observation_fields(obs)
+    for k in d:
+        np.testing.assert_allclose(f[k], d[k], rtol=1e-6, atol=1e-7)
+
+
+def test_wedging_cue_fires_after_latency(env):
+    inside = ENTRY_DEPTH + 0.02
+    sup = InstallerSupervisor(_profile(reaction_latency_steps=3, tilt_threshold_deg=1.5))
+    calm = [_obs(depth=inside, tilt=np.deg2rad(0.5))] * 5
+    tilted = [_obs(depth=inside, tilt=np.deg2rad(2.0))] * 8
+    kinds = _feed(env, sup, calm + tilted)
+    assert kinds[:5] == [None] * 5
+    # Cue on the 2nd tilted step (index 6), takeover 3 steps later (index 9).
+    assert kinds[6:9] == [None] * 3 and kinds[9] == "safety"
+    assert sup.events[0] == (9, "wedging", "safety")
+    # The same tilt outside the opening is not a cue.
+    sup2 = InstallerSupervisor(_profile(tilt_threshold_deg=1.5))
+    assert _feed(env, sup2, [_obs(depth=-0.3, tilt=np.deg2rad(5.0))] * 10) == [None] * 10
+
+
+def test_suction_lost_cue(env):
+    sup = InstallerSupervisor(_profile())
+    kinds = _feed(env, sup, [_obs(vacuum=1.0)] * 3 + [_obs(vacuum=0.0)] * 2)
+    assert kinds == [None, None, None, "safety", "safety"]
+    assert sup.events[0][1] == "suction_lost"
+    # Vacuum that was never on (B before acquisition) is not a loss.
+    sup = InstallerSupervisor(_profile())
+    assert _feed(env, sup, [_obs(vacuum=0.0)] * 5) == [None] * 5
+
+
+def test_stall_cue_needs_blocked_motion(env):
+    inside = ENTRY_DEPTH + 0.03
+    prof = _profile(stall_steps=4)
+    sup = InstallerSupervisor(prof)
+    kinds = _feed(env, sup, [_obs(depth=inside, blocked=0.004)] * 8)
+    assert kinds.index("safety") == 4 and sup.events[0][1] == "stall"
+    # Not moving but not commanded either (blocked ~ 0): no stall.
+    sup = InstallerSupervisor(prof)
+    assert _feed(env, sup, [_obs(depth=inside, blocked=0.0)] * 8) == [None] * 8
+    # Progressing 1 mm per step against contact: no stall.
+    sup = InstallerSupervisor(prof)
+    moving = [_obs(depth=inside + 0.001 * i, blocked=0.004) for i in range(8)]
+    assert _feed(env, sup, moving) == [None] * 8
+
+
+def test_reinsertion_and_no_progress_cues(env):
+    inside, outside = ENTRY_DEPTH + 0.01, ENTRY_DEPTH - 0.05
+    sup = InstallerSupervisor(_profile(max_reinsertions=2))
+    seq = [_obs(depth=outside), _obs(depth=inside)] * 3
+    kinds = _feed(env, sup, seq)
+    assert kinds.index("safety") == 5 and sup.events[0][1] == "reinsertion"
+    sup = InstallerSupervisor(_profile(patience_steps=20))
+    kinds = _feed(env, sup, [_obs(depth=-0.3)] * 25)
+    assert kinds.index("safety") == 20 and sup.events[0][1] == "no_progress"
+
+
+def test_safety_off_and_coverage(env):
+    sup = InstallerSupervisor(_profile(), safety=False)
+    assert _feed(env, sup, [_obs(vacuum=1.0)] * 2 + [_obs(vacuum=0.0)] * 3) == [None] * 5
+    # Coverage rate 1: one coverage intervention when the panel is held near the opening.
+    sup = InstallerSupervisor(_profile(coverage_rate=1.0), safety=False)
+    near = _obs(depth=ENTRY_DEPTH - 0.05, lateral=0.005)
+    kinds = _feed(env, sup, [_obs(depth=-0.6)] * 3 + [near] * 3)
+    assert kinds[:3] == [None] * 3 and kinds[3] == "coverage"
+    assert [e[2] for e in sup.events] == ["coverage"]
+
+
+def test_supervisor_rejects_other_observations(env):
+    sup = InstallerSupervisor("average")
+    sup.reset(env, seed=0)
+    with pytest.raises(ValueError, match=r"shape \(3,\)"):
+        sup.intervene(np.zeros(3), {})
+
+
+def test_takeover_recovers_a_wedged_straight_push():
+    """End to end on real physics: supervising the straight push, safety takeovers happen,
+    are logged with cues, and the run ends with more successes than the push alone (seeded)."""
+    r = measure_supervision("WindowInstall-A-v0", "straight_push", "expert", 3, seed=0,
+                            progress=False)
+    assert r["takeovers"] >= 1 and r["takeover_minutes"] > 0
+    assert set(r["safety_cues"]) <= {"suction_lost", "wedging", "stall", "reinsertion",
+                                     "no_progress"}
+    assert 0 < r["takeover_fraction"] < 1
+
+
+# ---------------------------------------------------------------- profiles, demos
+def test_operator_profiles():
+    assert set(OPERATORS) == {"expert", "average", "novice"}
+    e, a, n = (OPERATORS[k] for k in ("expert", "average", "novice"))
+    assert e.reaction_latency_steps < a.reaction_latency_steps < n.reaction_latency_steps
+    assert e.stall_steps < a.stall_steps < n.stall_steps
+    assert e.recovery_noise < a.recovery_noise < n.recovery_noise
+    assert e.demo_speed > a.demo_speed > n.demo_speed
+    with pytest.raises(ValueError, match=r"unknown operator profile 'pro'.*average"):
+        get_operator("pro")
+    with pytest.raises(ValueError, match=r"coverage_rate = 1.5 is outside \[0.0, 1.0\]"):
+        OperatorProfile("x", coverage_rate=1.5)
+
+
+def test_humanlike_demonstrator_is_seeded_and_not_the_script(env):
+    def actions(ctl, seed, T=60):
+        obs, _ = env.reset(seed=seed)
+        ctl.reset(seed=seed)
+        out = []
+        for _ in range(T):
+            a = ctl.act(obs)
+            out.append(a)
+            obs, *_ = env.step(a)
+        return np.stack(out)
+
+    h = HumanlikeInstaller(env, "novice")
+    a1, a2 = actions(h, 5), actions(h, 5)
+    np.testing.assert_array_equal(a1, a2)
+    assert not np.array_equal(a1, actions(h, 6))
+    scripted = actions(ScriptedInstaller(env, seed=5), 5)
+    assert np.abs(a1[:, :6] - scripted[:, :6]).mean() > 0.01
+    # Hesitations are zero-motion steps with the vacuum held.
+    still = np.all(a1[:, :6] == 0, axis=1)
+    assert still.any() and np.all(a1[still, 6] == a1[np.flatnonzero(still) - 1, 6])
+
+
+def test_collect_demos_keeps_successes_and_resumes(tmp_path):
+    s = collect_demos("WindowInstall-A-v0", 2, tmp_path, operator="expert", seed=0,
+                      progress=False)
+    assert s["kept"] == 2 and s["attempts"] >= 2
+    eps = load_episodes(demo_dataset_id("WindowInstall-A-v0", "expert"), data_path=tmp_path)
+    assert len(eps) == 2
+    for ep in eps:
+        assert ep.terminated[-1] and set(ep.provenance.tolist()) == {"demo"}
+        assert ep.operator == "expert" and ep.randomization and ep.stage_flags[-1].all()
+    # Resume: the per-episode checkpoints are reused, and the dataset comes out the same.
+    partial = sorted((tmp_path / ".partial").rglob("*.npz"))
+    assert len(partial) == s["attempts"]
+    mtimes = [p.stat().st_mtime_ns for p in partial]
+    s2 = collect_demos("WindowInstall-A-v0", 2, tmp_path, operator="expert", seed=0,
+                       progress=False)
+    assert [p.stat().st_mtime_ns for p in partial] == mtimes
+    assert s2["episodes"] == s["episodes"]
+    eps2 = load_episodes(demo_dataset_id("WindowInstall-A-v0", "expert"), data_path=tmp_path)
+    for a, b in zip(eps, eps2):
+        np.testing.assert_array_equal(a.actions, b.actions)
+    with pytest.raises(ValueError, match="n = 0"):
+        collect_demos("WindowInstall-A-v0", 0, tmp_path)

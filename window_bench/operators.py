@@ -1,0 +1,198 @@
+"""Named operator profiles, and the human-like demonstrator built on the scripted installer.
+
+The paper's installer is one person; its Section 5 names operator-to-operator variability
+(takeover timing, recovery style, skill) as unquantified. An :class:`OperatorProfile` makes
+that variability a parameter: the same scripted installer, driven with a different reaction
+latency, different trigger thresholds, noisier hands and a different appetite for coverage
+interventions. Three named profiles ship in :data:`OPERATORS`; ``average`` is the default
+and the stand-in for the paper's installer.
+
+:class:`HumanlikeInstaller` turns the scripted installer into a demonstrator whose episodes
+look like a skilled human's teleoperation rather than a perfect controller: slower hands,
+smooth (Ornstein-Uhlenbeck) motion noise, hesitations at phase changes and now and then
+mid-motion, and a coarser visual alignment that contact then reveals (more recoveries).
+Near contact (aligning, inserting, recovering, seating) the tremor drops to a fifth, as a
+careful operator's does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from .installer import ENGAGE, RELEASE, ScriptedInstaller
+
+
+@dataclass(frozen=True)
+class OperatorProfile:
+    """How one installer demonstrates and supervises (see :data:`OPERATORS`).
+
+    Demonstrations: ``demo_speed`` scales the installer's motion commands (< 1: slower
+    hands); ``motion_noise`` is the stationary std of OU noise added to the 6 motion
+    components (action units, correlation time ``noise_tau_steps``); ``hesitation_rate`` is
+    the per-step probability of a pause mid-motion and ``phase_hesitation`` the probability of
+    a pause at each phase change, pauses lasting 1..``hesitation_max_steps`` steps;
+    ``align_error_mm`` / ``align_error_deg`` bound the per-episode error of the visual
+    alignment (the installer's eye).
+
+    Takeovers: ``reaction_latency_steps`` between the cue and the takeover; trigger
+    thresholds ``stall_steps`` (steps of blocked insertion), ``tilt_threshold_deg`` and
+    ``lateral_threshold_mm`` (loss of clearance / asymmetric contact inside the opening),
+    ``max_reinsertions`` (entries into the opening before taking over), ``patience_steps``
+    (steps without progress); ``recovery_noise`` (OU std on the takeover's motion commands);
+    ``coverage_rate`` (probability per episode of one coverage intervention near the
+    opening); ``max_takeover_steps`` (hand back regardless after this long).
+    """
+
+    name: str
+    # demonstrations
+    demo_speed: float = 0.6
+    motion_noise: float = 0.05
+    noise_tau_steps: float = 5.0
+    hesitation_rate: float = 0.01
+    phase_hesitation: float = 0.5
+    hesitation_max_steps: int = 6
+    align_error_mm: float = 1.5
+    align_error_deg: float = 0.75
+    # takeovers
+    reaction_latency_steps: int = 2
+    stall_steps: int = 5
+    tilt_threshold_deg: float = 0.8
+    lateral_threshold_mm: float = 2.5
+    max_reinsertions: int = 3
+    patience_steps: int = 100
+    recovery_noise: float = 0.05
+    coverage_rate: float = 0.05
+    max_takeover_steps: int = 200
+
+    def __post_init__(self):
+        checks = {
+            "demo_speed": (self.demo_speed, 0.05, 1.0),
+            "motion_noise": (self.motion_noise, 0.0, 0.5),
+            "noise_tau_steps": (self.noise_tau_steps, 1.0, 100.0),
+            "hesitation_rate": (self.hesitation_rate, 0.0, 0.5),
+            "phase_hesitation": (self.phase_hesitation, 0.0, 1.0),
+            "hesitation_max_steps": (self.hesitation_max_steps, 1, 50),
+            "align_error_mm": (self.align_error_mm, 0.0, 10.0),
+            "align_error_deg": (self.align_error_deg, 0.0, 5.0),
+            "reaction_latency_steps": (self.reaction_latency_steps, 0, 50),
+            "stall_steps": (self.stall_steps, 1, 100),
+            "tilt_threshold_deg": (self.tilt_threshold_deg, 0.1, 45.0),
+            "lateral_threshold_mm": (self.lateral_threshold_mm, 0.1, 100.0),
+            "max_reinsertions": (self.max_reinsertions, 1, 100),
+            "patience_steps": (self.patience_steps, 1, 600),
+            "recovery_noise": (self.recovery_noise, 0.0, 0.5),
+            "coverage_rate": (self.coverage_rate, 0.0, 1.0),
+            "max_takeover_steps": (self.max_takeover_steps, 1, 600),
+        }
+        for key, (value, lo, hi) in checks.items():
+            if isinstance(value, bool) or not (lo <= value <= hi):
+                raise ValueError(f"OperatorProfile {self.name!r}: {key} = {value!r} is outside "
+                                 f"[{lo}, {hi}]")
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+#: The named profiles. ``average`` stands in for the paper's single installer.
+OPERATORS: dict[str, OperatorProfile] = {
+    p.name: p for p in (
+        OperatorProfile(
+            "expert", demo_speed=0.75, motion_noise=0.03, hesitation_rate=0.005,
+            phase_hesitation=0.3, hesitation_max_steps=4, align_error_mm=1.0,
+            align_error_deg=0.5, reaction_latency_steps=1, stall_steps=3,
+            tilt_threshold_deg=0.5, lateral_threshold_mm=1.5, max_reinsertions=2,
+            patience_steps=80, recovery_noise=0.02, coverage_rate=0.10),
+        OperatorProfile("average"),
+        OperatorProfile(
+            "novice", demo_speed=0.45, motion_noise=0.08, hesitation_rate=0.02,
+            phase_hesitation=0.8, hesitation_max_steps=10, align_error_mm=2.0,
+            align_error_deg=1.0, reaction_latency_steps=5, stall_steps=8,
+            tilt_threshold_deg=1.2, lateral_threshold_mm=4.0, max_reinsertions=5,
+            patience_steps=150, recovery_noise=0.10, coverage_rate=0.02),
+    )
+}
+
+
+def get_operator(name_or_profile: str | OperatorProfile) -> OperatorProfile:
+    """The profile itself, or the named one; an unknown name lists the choices."""
+    if isinstance(name_or_profile, OperatorProfile):
+        return name_or_profile
+    try:
+        return OPERATORS[name_or_profile]
+    except KeyError:
+        raise ValueError(f"unknown operator profile {name_or_profile!r}; choose from "
+                         f"{sorted(OPERATORS)}") from None
+
+
+#: Installer phases in which the panel is near or in contact with the opening.
+FINE_PHASES = ("align", "insert", "recover", "seat")
+FINE_NOISE_SCALE = 0.2
+
+
+class OUNoise:
+    """Ornstein-Uhlenbeck noise with stationary std ``sigma`` and correlation time ``tau``
+    steps: hand tremor and drift rather than white jitter."""
+
+    def __init__(self, dim: int, sigma: float, tau: float, rng: np.random.Generator):
+        self.sigma, self.theta, self.rng = float(sigma), 1.0 / float(tau), rng
+        self.x = np.zeros(dim)
+
+    def reset(self) -> None:
+        self.x[:] = self.rng.normal(0.0, self.sigma, self.x.shape) if self.sigma else 0.0
+
+    def __call__(self) -> np.ndarray:
+        if self.sigma:
+            kick = self.sigma * np.sqrt(2.0 * self.theta - self.theta ** 2)
+            self.x = (1.0 - self.theta) * self.x + kick * self.rng.normal(size=self.x.shape)
+        return self.x
+
+
+class HumanlikeInstaller:
+    """The scripted installer demonstrating with a human operator's hands (module docstring).
+
+    ``act(obs) -> (7,)`` like every controller; ``reset(seed)`` redraws the eye error, the
+    noise and the hesitations, so the same seed gives the same demonstration.
+    """
+
+    def __init__(self, env, operator: str | OperatorProfile = "average", seed: int | None = None):
+        self.profile = get_operator(operator)
+        p = self.profile
+        self.env = env.unwrapped
+        self.installer = ScriptedInstaller(env, p.align_error_mm, p.align_error_deg, seed=seed)
+        self.rng = np.random.default_rng(seed)
+        self.noise = OUNoise(6, p.motion_noise, p.noise_tau_steps, self.rng)
+        self.reset(seed)
+
+    @property
+    def recoveries(self) -> int:
+        return self.installer.recoveries
+
+    def reset(self, seed: int | None = None) -> None:
+        if seed is not None:
+            self.rng = np.random.default_rng([seed, 1])
+            self.noise.rng = self.rng
+        self.installer.reset(seed)
+        self.noise.reset()
+        self.pause = 0
+        self.vacuum = ENGAGE if self.env.suction_engaged else RELEASE
+        self.hesitations = 0
+
+    def act(self, obs=None) -> np.ndarray:
+        p = self.profile
+        if self.pause > 0:
+            self.pause -= 1
+            return np.array([0, 0, 0, 0, 0, 0, self.vacuum], dtype=np.float32)
+        phase = self.installer.phase
+        a = self.installer.act(obs).astype(np.float64)
+        changed = phase is not None and self.installer.phase != phase
+        if (changed and self.rng.random() < p.phase_hesitation) or self.rng.random() < p.hesitation_rate:
+            self.pause = int(self.rng.integers(1, p.hesitation_max_steps + 1))
+            self.hesitations += 1
+        # Careful hands near contact: a fifth of the tremor once the panel is being aligned.
+        scale = FINE_NOISE_SCALE if self.installer.phase in FINE_PHASES else 1.0
+        a[:6] = np.clip(a[:6] * p.demo_speed + scale * self.noise(), -1.0, 1.0)
+        self.vacuum = a[6]
+        return a.astype(np.float32)

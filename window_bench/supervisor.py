@@ -1,0 +1,241 @@
+"""Event-driven binary takeovers (paper Section 3.4.2): who may override the policy, and when.
+
+A *takeover source* is anything with
+
+    reset(env, seed=None) -> None
+    intervene(obs, info) -> (action, kind) | None
+
+``intervene`` is called once per 10 Hz step, before the action executes, with the current
+observation and the ``info`` of the previous step (the reset info at ``t = 0``). It returns
+the action to execute instead of the policy's and the takeover kind (``"safety"`` or
+``"coverage"``), or ``None`` to leave control with the policy. The rollout loop
+(:mod:`window_bench.rollout`) does the rest: it clears the policy's action queue, logs the
+step with provenance ``"takeover"``, and resumes the policy only at the next fixed chunk
+boundary. Two sources ship: :class:`InstallerSupervisor` (the scripted installer watching
+the same observations as the policy) and ``window_bench.teleop.DeviceTakeover`` (a person
+with a keyboard or SpaceMouse; a takeover whenever the device is active, as in HIL-SERL).
+
+:class:`InstallerSupervisor` watches only cues available at the observation interface, as
+the paper's installer does: the panel's pose relative to the opening (``window_pos_rel``,
+``window_rot_rel``), the contact proxy (realized minus commanded motion) and the vacuum
+state. Safety takeovers fire on
+
+* ``suction_lost`` - the vacuum flag drops while the panel is not seated;
+* ``wedging`` - at the entry (the leading face within ``APPROACH_ZONE`` of the wall face)
+  or inside the opening, tilt or lateral offset past the operator's thresholds: loss of
+  visible clearance, or asymmetric contact. With 2 mm per side, a 0.5 m panel tilted by
+  more than ~0.5 degrees cannot enter square, so a quick operator preempts the wedge
+  before the leading face reaches the bevel;
+* ``stall`` - inside the opening, insertion progress stalls while commanded motion is not
+  realized, for ``stall_steps`` steps;
+* ``reinsertion`` - more than ``max_reinsertions`` entries into the opening;
+* ``no_progress`` - no new best distance to the goal (the panel while not held, the seat
+  while held) for ``patience_steps`` steps.
+
+After ``reaction_latency_steps`` the installer takes over with its recovery (retract,
+re-square, reinsert; or re-acquire and re-stage the panel) and hands back as soon as the
+state is back inside the recoverable envelope: the panel held, square and aligned in front of
+the opening (the installer's ``insert`` phase). Coverage interventions happen at most once
+per episode, with probability ``coverage_rate``: when the panel is held near the opening, the
+installer inserts with a deliberately coarse eye (mild misalignment) until it has been
+through one contact recovery or reached the seat, exposing recovery behaviour that
+autonomous exploration rarely reaches. Every trigger is recorded in :attr:`events`.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from . import scene as S
+from .env import STATE_KEYS
+from .installer import ScriptedInstaller
+from .operators import OperatorProfile, OUNoise, get_operator
+
+#: Sizes of the state observation fields, in ``STATE_KEYS`` order (the flat layout).
+STATE_SIZES = {"robot0_joint_pos": 7, "robot0_joint_vel": 7, "robot0_eef_pos": 3,
+               "robot0_eef_quat": 4, "robot0_vacuum": 1, "robot0_proprio": 18,
+               "window_pos_rel": 3, "window_rot_rel": 3, "contact_proxy": 6}
+_OFFSETS = np.cumsum([0] + [STATE_SIZES[k] for k in STATE_KEYS])
+FLAT_SLICES = {k: slice(int(_OFFSETS[i]), int(_OFFSETS[i + 1])) for i, k in enumerate(STATE_KEYS)}
+FLAT_DIM = int(_OFFSETS[-1])
+
+#: Safety cues, in the order they are checked.
+CUES = ("suction_lost", "wedging", "stall", "reinsertion", "no_progress")
+
+ENTRY_DEPTH = -S.STOP_DEPTH   # seat-relative depth at which the leading face meets the wall
+SEATED_DEPTH = -0.002
+APPROACH_ZONE = 0.02          # m in front of the wall face watched for loss of clearance
+
+
+class TakeoverSource(Protocol):
+    def reset(self, env, seed: int | None = None) -> None: ...
+
+    def intervene(self, obs, info: dict) -> tuple[np.ndarray, str] | None: ...
+
+
+def observation_fields(obs) -> dict[str, np.ndarray]:
+    """The state fields of a flat (52,) or dict observation."""
+    if isinstance(obs, dict):
+        return {k: np.asarray(obs[k], dtype=np.float64) for k in STATE_KEYS}
+    obs = np.asarray(obs, dtype=np.float64)
+    if obs.shape != (FLAT_DIM,):
+        raise ValueError(f"observation of shape {obs.shape}: the supervisor reads the state "
+                         f"observation, flat ({FLAT_DIM},) or the Dict of {STATE_KEYS}")
+    return {k: obs[s] for k, s in FLAT_SLICES.items()}
+
+
+class InstallerSupervisor:
+    """The scripted installer as the takeover source (module docstring).
+
+    ``operator`` is a profile name from :data:`window_bench.operators.OPERATORS` or an
+    :class:`OperatorProfile`. ``safety`` / ``coverage`` switch the two kinds on and off.
+    """
+
+    def __init__(self, operator: str | OperatorProfile = "average", *, safety: bool = True,
+                 coverage: bool = True):
+        self.profile = get_operator(operator)
+        self.safety, self.coverage = bool(safety), bool(coverage)
+        self.events: list[tuple[int, str, str]] = []   # (step, cue, kind) per takeover
+        self.env = None
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, env, seed: int | None = None) -> None:
+        p = self.profile
+        self.env = env.unwrapped
+        self.rng = np.random.default_rng([0 if seed is None else seed, 7])
+        self.installer = ScriptedInstaller(self.env, p.align_error_mm, p.align_error_deg,
+                                           seed=int(self.rng.integers(2**31)))
+        self.noise = OUNoise(6, p.recovery_noise, p.noise_tau_steps, self.rng)
+        self.events = []
+        self.t = -1
+        self.active: str | None = None      # kind of the running takeover
+        self.pending: tuple[int, str] | None = None   # (start step, cue)
+        self.coverage_planned = self.coverage and self.rng.random() < p.coverage_rate
+        self._clear_history()
+
+    def _clear_history(self) -> None:
+        self.depth_hist: list[float] = []
+        self.blocked_hist: list[float] = []
+        self.in_zone = False
+        self.entries = 0
+        self.best = np.inf
+        self.best_t = self.t
+        self.off_axis_steps = 0
+        self.vacuum_was_on = None
+
+    # ------------------------------------------------------------------ cues
+    def _cue(self, f: dict) -> str | None:
+        """Update the histories with this observation; return the first cue that fires."""
+        p = self.profile
+        pos_rel = f["window_pos_rel"]
+        depth = float(pos_rel @ S.INSERTION_AXIS)
+        lateral = float(np.linalg.norm(pos_rel - depth * S.INSERTION_AXIS))
+        tilt = float(np.linalg.norm(f["window_rot_rel"]))
+        vac = bool(f["robot0_vacuum"][0] > 0.5)
+        seated = depth > SEATED_DEPTH and lateral < 0.002
+        zone = vac and depth > ENTRY_DEPTH - 0.005
+        approach = vac and depth > ENTRY_DEPTH - APPROACH_ZONE
+
+        lost = self.vacuum_was_on is True and not vac and not seated
+        self.vacuum_was_on = vac
+        if zone and not self.in_zone:
+            self.entries += 1
+        self.in_zone = zone
+        self.depth_hist.append(depth)
+        self.blocked_hist.append(float(np.linalg.norm(f["contact_proxy"][:3])))
+        off_axis = approach and not seated and (tilt > np.deg2rad(p.tilt_threshold_deg)
+                             or lateral > p.lateral_threshold_mm / 1000.0)
+        self.off_axis_steps = self.off_axis_steps + 1 if off_axis else 0
+        # Progress toward the goal: the panel while it is not held, the seat while it is.
+        if vac:
+            dist = float(np.linalg.norm(pos_rel))
+        else:
+            panel = self.env.seated_pose[0] + pos_rel   # the opening's place is known
+            dist = 1.0 + float(np.linalg.norm(f["robot0_eef_pos"] - panel))
+        if dist < self.best - 0.005:
+            self.best, self.best_t = dist, self.t
+
+        if lost:
+            return "suction_lost"
+        if self.off_axis_steps >= 2:
+            return "wedging"
+        n = p.stall_steps
+        if zone and not seated and len(self.depth_hist) > n:
+            progress = self.depth_hist[-1] - self.depth_hist[-1 - n]
+            blocked = np.mean(self.blocked_hist[-n:])
+            if progress < 0.0005 and blocked > 0.001:
+                return "stall"
+        if self.entries > p.max_reinsertions:
+            return "reinsertion"
+        if self.t - self.best_t >= p.patience_steps:
+            return "no_progress"
+        return None
+
+    def _coverage_moment(self, f: dict) -> bool:
+        pos_rel = f["window_pos_rel"]
+        depth = float(pos_rel @ S.INSERTION_AXIS)
+        lateral = float(np.linalg.norm(pos_rel - depth * S.INSERTION_AXIS))
+        return (f["robot0_vacuum"][0] > 0.5 and -0.25 < depth < ENTRY_DEPTH - 0.01
+                and lateral < 0.03)
+
+    # ------------------------------------------------------------------ control
+    def _start(self, kind: str, cue: str) -> None:
+        self.active = kind
+        self.events.append((self.t, cue, kind))
+        self.steps_in = 0
+        self.start_recoveries = 0
+        self.noise.reset()
+        if kind == "coverage":
+            # Mild misalignment on purpose: twice the operator's eye error, fresh draw.
+            e_lin, e_rot = self.installer.align_error
+            self.installer.err_pos = np.array([self.rng.choice([-1, 1]) * 2 * e_lin, 0.0,
+                                               self.rng.choice([-1, 1]) * 2 * e_lin])
+            self.installer.err_rot = self.rng.uniform(-2 * e_rot, 2 * e_rot, 3)
+            self.installer.recoveries = 0
+            self.installer._set("align")
+        else:
+            self.installer.take_over()
+            self.start_recoveries = self.installer.recoveries
+
+    def _restored(self) -> bool:
+        """Back inside the recoverable envelope (time to hand back)?"""
+        inst = self.installer
+        if self.steps_in >= self.profile.max_takeover_steps:
+            return True
+        if self.active == "coverage":
+            return inst.phase == "seat" or (inst.phase == "insert" and inst.recoveries > 0)
+        return inst.phase == "insert" and self.steps_in > 1
+
+    def intervene(self, obs, info: dict) -> tuple[np.ndarray, str] | None:
+        if self.env is None:
+            raise RuntimeError("call reset(env, seed) before intervene()")
+        self.t += 1
+        f = observation_fields(obs)
+        if self.active is not None:
+            if self._restored():
+                self.active = None
+                self._clear_history()
+                self.best_t = self.t
+                return None
+            return self._installer_action(obs)
+
+        cue = self._cue(f) if self.safety else None
+        if cue is not None and self.pending is None:
+            self.pending = (self.t + self.profile.reaction_latency_steps, cue)
+        if self.pending is not None and self.t >= self.pending[0]:
+            self._start("safety", self.pending[1])
+            self.pending = None
+        elif self.coverage_planned and self.pending is None and self._coverage_moment(f):
+            self.coverage_planned = False
+            self._start("coverage", "coverage")
+        else:
+            return None
+        return self._installer_action(obs)
+
+    def _installer_action(self, obs) -> tuple[np.ndarray, str]:
+        self.steps_in += 1
+        a = self.installer.act(obs).astype(np.float64)
+        a[:6] = np.clip(a[:6] + self.noise(), -1.0, 1.0)
+        return a.astype(np.float32), self.active
