@@ -6,6 +6,8 @@ clearance are constructor arguments (``window_bench/__init__.py`` registers the 
 
 from __future__ import annotations
 
+import dataclasses
+
 import mujoco
 import numpy as np
 import gymnasium as gym
@@ -103,6 +105,20 @@ class WindowInstallEnv(gym.Env):
     **Success conditions.** Reward 1 and termination when the panel centre is within 2 mm of
     the seated target, cos(n_window, n_wall) > 0.95 and the panel speed is below 1 cm/s.
     Truncation at 600 steps. Physics divergence truncates with ``info["sim_unstable"]``.
+    ``info["accepted"]`` says whether the acceptance test passes on this step, and
+    ``info["is_success"]`` whether the episode, if it ends on this step, ends with the panel
+    accepted (in the default mode both are true exactly on the terminating step).
+
+    **Acceptance without termination.** ``terminate_on_acceptance=False`` (default ``True``)
+    keeps the episode running through acceptance: ``terminated`` is never set, the episode
+    ends only by truncation, and the reward is ``1.0`` on every step with ``accepted`` true
+    (so ``reward == float(info["accepted"])`` in both modes). ``is_success`` equals
+    ``accepted``; ``seated`` records that acceptance was reached at some point, and
+    ``failure_mode`` labels a panel that is not accepted now as if it had never been
+    (``""`` while it is accepted): a panel disturbed after acceptance is typically
+    ``unstable_seating``, a released one ``suction_lost``. This mode exists for
+    ``window_bench.wrappers.NoisyAcceptance``, which decides reward and termination from a
+    noisy acceptance sensor; it sets the attribute ``terminate_on_acceptance`` itself.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -111,7 +127,8 @@ class WindowInstallEnv(gym.Env):
                  panel_height: float = 0.5, clearance: float = 0.002,
                  panel_mass: float | None = None, obs_mode: str = "state",
                  render_mode: str | None = None, image_size: int = 128,
-                 max_episode_steps: int = MAX_EPISODE_STEPS):
+                 max_episode_steps: int = MAX_EPISODE_STEPS,
+                 terminate_on_acceptance: bool = True):
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode={obs_mode!r}; allowed: {OBS_MODES}")
         if render_mode not in (None, "rgb_array"):
@@ -120,6 +137,9 @@ class WindowInstallEnv(gym.Env):
             raise ValueError(f"image_size={image_size!r} is outside [16, 512]")
         if not (1 <= int(max_episode_steps)):
             raise ValueError(f"max_episode_steps={max_episode_steps!r} must be >= 1")
+        if not isinstance(terminate_on_acceptance, (bool, np.bool_)):
+            raise ValueError(f"terminate_on_acceptance={terminate_on_acceptance!r}; allowed: True, False")
+        self.terminate_on_acceptance = bool(terminate_on_acceptance)
         self.cfg = S.SceneConfig(experiment=experiment, panel_width=panel_width,
                                  panel_height=panel_height, clearance=clearance,
                                  panel_mass=panel_mass)
@@ -392,15 +412,23 @@ class WindowInstallEnv(gym.Env):
                             commanded=float(np.linalg.norm(cmd_pos)),
                             realized=float(np.linalg.norm(realized_pos)), accepted=acc.accepted,
                             suction_failed=suction_failed)
-        terminated = acc.accepted and not unstable
+        accepted = acc.accepted and not unstable
+        terminated = accepted and self.terminate_on_acceptance
         truncated = unstable or (not terminated and self._steps >= self.max_episode_steps)
-        reward = 1.0 if terminated else 0.0
+        reward = 1.0 if accepted else 0.0
         info = self._info(acc)
         info["suction_failed"] = suction_failed
         # The label this episode gets if it ends now: valid on whichever step a wrapper
         # (e.g. gym.make(..., max_episode_steps=N)) or the env's own horizon ends it.
-        info["failure_mode"] = self._stages.failure_mode(self._sim_unstable) or ""
-        info["is_success"] = bool(terminated)
+        if self.terminate_on_acceptance or accepted:
+            info["failure_mode"] = self._stages.failure_mode(self._sim_unstable) or ""
+        else:
+            # Accepted earlier, not now (the episode ran on): label the current state as if
+            # acceptance had never been reached.
+            unseated = dataclasses.replace(self._stages, seated=False)
+            info["failure_mode"] = unseated.failure_mode(self._sim_unstable) or ""
+        info["accepted"] = bool(accepted)
+        info["is_success"] = bool(accepted)
         if terminated or truncated:
             self._needs_reset = True
         return self._observation(), reward, terminated, truncated, info
@@ -453,6 +481,7 @@ class WindowInstallEnv(gym.Env):
             "suction_failed": False,
             "suction_failures": self._suction_failures,
             "failure_mode": "",
+            "accepted": False,
             "is_success": False,
         }
 
