@@ -245,3 +245,12 @@ def test_bad_arguments(tmp_path, episodes):
         save_episodes(episodes, "meta-v0", env_id=ENV_ID, obs_dim=OBS_DIM,
                       data_path=tmp_path, metadata={"schema_version": 2})
     assert not (tmp_path / "meta-v0").exists()
+
+
+def test_relative_data_path(tmp_path, episodes, monkeypatch):
+    # Minari joins a relative datasets root onto paths it already resolved; we pass it
+    # an absolute one.
+    monkeypatch.chdir(tmp_path)
+    save_episodes(episodes, "wb/rel-v0", env_id=ENV_ID, obs_dim=OBS_DIM, data_path="rel/ds")
+    assert (tmp_path / "rel" / "ds" / "wb" / "rel-v0" / "data" / "main_data.hdf5").is_file()
+    assert len(load_episodes("wb/rel-v0", data_path="rel/ds")) == len(episodes)

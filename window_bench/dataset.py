@@ -65,7 +65,8 @@ def _datasets_root(data_path):
         yield
         return
     old = os.environ.get("MINARI_DATASETS_PATH")
-    os.environ["MINARI_DATASETS_PATH"] = os.fspath(data_path)
+    # Absolute: Minari joins a relative root onto paths it already resolved.
+    os.environ["MINARI_DATASETS_PATH"] = os.path.abspath(os.fspath(data_path))
     try:
         yield
     finally:
