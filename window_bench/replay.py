@@ -1,0 +1,206 @@
+"""Replay of chunk transitions on TorchRL components, and the 1:1 demo/online batch.
+
+A :class:`ChunkReplay` holds the chunk transitions (paper Eq. 4) of whole episodes, built by
+:func:`window_bench.chunks.chunk_transitions` on the paper's FIXED grid ``t = k*h``. The
+reference implementation (``qc``) instead samples a window start uniformly at any step and
+masks windows that cross an episode end; we follow the paper: every stored window starts on
+the grid, so a takeover never shifts it (Section 3.2). Windows cut short by the time limit
+are stored with ``valid = False`` and stay in the buffer; the agent's TD loss masks them
+(``baselines.qcfql``), and its flow loss masks padded steps with ``action_mask``.
+
+Storage is a :class:`torchrl.data.ReplayBuffer` over a fixed-capacity
+:class:`torchrl.data.LazyTensorStorage` with a round-robin writer (FIFO: when full, the
+oldest chunks are overwritten first; nothing is dropped while the capacity suffices) and a
+uniform :class:`torchrl.data.RandomSampler` drawing from the buffer's own seeded
+``torch.Generator``, so a run's batches are reproducible and a resumed run continues the
+same sequence (:meth:`ChunkReplay.state_dict`).
+
+Stored keys, per chunk (``K`` chunks of one episode, see :func:`chunk_transitions`): ``obs``,
+``next_obs`` (float32, obs_dim), ``actions`` (float32, h x 7), ``action_mask`` (bool, h),
+``reward``, ``discount`` (float32), ``terminal``, ``valid``, ``any_takeover`` (bool),
+``n_steps``, ``chunk_start``, ``episode_id`` (int64) and ``provenance_code`` (uint8, h): the
+per-step ``provenance_mix`` strings as codes :data:`PROVENANCE_CODES` (TensorDicts hold no
+strings).
+
+:func:`mixed_batch` draws the paper's fixed 1:1 demo:online batch (Stage III, after RLPD's
+symmetric sampling): exactly ``round(n * demo_fraction)`` from the demo buffer and the rest
+from the online buffer, every batch, not merely in expectation.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, RandomSampler, ReplayBuffer, RoundRobinWriter
+
+from .chunks import _check_args, chunk_transitions
+from .steplog import EpisodeLog
+
+#: ``provenance_mix`` string -> stored ``provenance_code`` (0 marks a padded step).
+PROVENANCE_CODES = {"": 0, "demo": 1, "policy": 2, "takeover": 3}
+
+#: Keys of a sampled batch, in order (the numeric keys of :func:`chunk_transitions` plus
+#: ``provenance_code`` in place of the ``provenance_mix`` strings).
+REPLAY_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount", "terminal",
+               "valid", "n_steps", "chunk_start", "any_takeover", "episode_id",
+               "provenance_code")
+
+
+def _check_count(name: str, value, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        raise ValueError(f"{name} = {value!r} is not allowed: it must be an integer "
+                         f">= {minimum}")
+    return int(value)
+
+
+def chunks_to_tensordict(chunks: dict[str, np.ndarray]) -> TensorDict:
+    """The output of :func:`chunk_transitions` as a TensorDict with batch size ``(K,)``.
+
+    String keys are not storable; ``provenance_mix`` becomes ``provenance_code`` (uint8,
+    :data:`PROVENANCE_CODES`). Keys a newer :func:`chunk_transitions` adds are kept if
+    numeric or boolean and ignored otherwise.
+    """
+    K = len(chunks["obs"])
+    data = {}
+    for key, value in chunks.items():
+        arr = np.asarray(value)
+        if key == "provenance_mix":
+            codes = np.zeros(arr.shape, dtype=np.uint8)
+            for name, code in PROVENANCE_CODES.items():
+                codes[arr == name] = code
+            data["provenance_code"] = torch.from_numpy(codes)
+        elif arr.dtype == np.bool_ or np.issubdtype(arr.dtype, np.number):
+            data[key] = torch.from_numpy(np.ascontiguousarray(arr))
+    return TensorDict(data, batch_size=[K])
+
+
+class ChunkReplay:
+    """FIFO replay of fixed-grid chunk transitions with seeded uniform sampling.
+
+    Parameters
+    ----------
+    capacity : int
+        Maximum number of chunks held (>= 1). When full, the oldest chunks are overwritten.
+    h : int
+        Chunk horizon used to cut every added episode (>= 1).
+    gamma : float
+        Per-step discount in [0, 1] for the chunk return ``R_k`` and ``discount = gamma**h``.
+    seed : int
+        Seed of the buffer's own ``torch.Generator`` used by :meth:`sample`.
+    """
+
+    def __init__(self, capacity: int, h: int, gamma: float, seed: int = 0):
+        self.capacity = _check_count("capacity", capacity, 1)
+        self.h, self.gamma = _check_args(h, gamma)
+        self.seed = _check_count("seed", seed, 0)
+        self._generator = torch.Generator().manual_seed(self.seed)
+        self._buffer = ReplayBuffer(storage=LazyTensorStorage(self.capacity),
+                                    sampler=RandomSampler(), writer=RoundRobinWriter(),
+                                    generator=self._generator)
+        self.chunks_added = 0  # total ever added, overwritten ones included
+        self.episodes_added = 0
+
+    def __len__(self) -> int:
+        return len(self._buffer)
+
+    def add_episode(self, episode: EpisodeLog) -> int:
+        """Cut ``episode`` into chunk transitions on the fixed grid and append them.
+
+        Returns the number of chunks added (``ceil(T / h)``). Raises ``ValueError`` for an
+        invalid episode (see :meth:`EpisodeLog.validate`) or one whose observation size
+        differs from the chunks already stored.
+        """
+        td = chunks_to_tensordict(chunk_transitions(episode, self.h, self.gamma))
+        if len(self) > 0:
+            stored = self._buffer.storage._storage
+            for key in ("obs", "actions"):
+                if td[key].shape[1:] != stored[key].shape[1:]:
+                    raise ValueError(f"ChunkReplay.add_episode: {key!r} has per-chunk shape "
+                                     f"{tuple(td[key].shape[1:])}, the buffer holds "
+                                     f"{tuple(stored[key].shape[1:])}")
+        self._buffer.extend(td)
+        self.chunks_added += td.batch_size[0]
+        self.episodes_added += 1
+        return int(td.batch_size[0])
+
+    def sample(self, n: int) -> TensorDict:
+        """``n`` chunks drawn uniformly with replacement, as a TensorDict of batch size (n,).
+
+        Raises ``ValueError`` if the buffer is empty or ``n`` is not an integer >= 1.
+        """
+        n = _check_count("n", n, 1)
+        if len(self) == 0:
+            raise ValueError(f"ChunkReplay.sample({n}): the buffer is empty; add episodes "
+                             f"with add_episode() before sampling")
+        return self._buffer.sample(n)
+
+    def state_dict(self) -> dict:
+        """Everything for an exact resume: settings, the stored chunks in storage order, the
+        write cursor and the sampler's RNG state.
+
+        Only the filled rows are saved (not the whole preallocated capacity), as a dict of
+        tensor copies: later writes to the buffer do not change a saved state dict.
+        """
+        n = len(self)
+        data = ({key: value.clone() for key, value in self._buffer.storage[:n].items()}
+                if n else {})
+        return {"capacity": self.capacity, "h": self.h, "gamma": self.gamma,
+                "seed": self.seed, "chunks_added": self.chunks_added,
+                "episodes_added": self.episodes_added, "data": data,
+                "writer": dict(self._buffer.writer.state_dict()),
+                "rng_state": self._generator.get_state()}
+
+    def load_state_dict(self, sd: dict) -> None:
+        """Restore a :meth:`state_dict` into this buffer, replacing its contents.
+
+        ``capacity``, ``h`` and ``gamma`` must match this buffer's (``ValueError`` otherwise).
+        """
+        for key in ("capacity", "h", "gamma"):
+            if sd[key] != getattr(self, key):
+                raise ValueError(f"ChunkReplay.load_state_dict: {key} = {sd[key]!r} in the "
+                                 f"state dict, {getattr(self, key)!r} in this buffer")
+        self.seed = sd["seed"]
+        self._generator = torch.Generator()
+        self._generator.set_state(sd["rng_state"].clone())
+        self._buffer = ReplayBuffer(storage=LazyTensorStorage(self.capacity),
+                                    sampler=RandomSampler(), writer=RoundRobinWriter(),
+                                    generator=self._generator)
+        if sd["data"]:
+            # rows were saved in storage order: writing them from slot 0 puts every chunk
+            # back in its slot; the saved cursor then restores the FIFO overwrite order
+            data = {key: value.clone() for key, value in sd["data"].items()}
+            n = len(next(iter(data.values())))
+            self._buffer.extend(TensorDict(data, batch_size=[n]))
+        self._buffer.writer.load_state_dict(dict(sd["writer"]))
+        self.chunks_added = sd["chunks_added"]
+        self.episodes_added = sd["episodes_added"]
+
+
+def mixed_batch(demo: ChunkReplay, online: ChunkReplay, n: int,
+                demo_fraction: float = 0.5) -> TensorDict:
+    """A batch of ``n`` chunks: exactly ``round(n * demo_fraction)`` from ``demo``, the rest
+    from ``online`` (the paper's fixed 1:1 ratio at the default; demo rows come first).
+
+    If ``online`` is empty (before any online episode), all ``n`` come from ``demo``.
+    ``round`` is Python's (halves to even). Raises ``ValueError`` for ``demo_fraction``
+    outside [0, 1], ``n`` < 1, buffers with different ``h``, or an empty buffer that must
+    supply rows.
+    """
+    n = _check_count("n", n, 1)
+    if (isinstance(demo_fraction, bool) or not isinstance(demo_fraction, numbers.Real)
+            or not 0.0 <= float(demo_fraction) <= 1.0):
+        raise ValueError(f"demo_fraction = {demo_fraction!r} is not allowed: it must be a "
+                         f"real number in [0, 1]")
+    if demo.h != online.h:
+        raise ValueError(f"mixed_batch: demo buffer has h = {demo.h}, online buffer has "
+                         f"h = {online.h}; both must use the same chunk horizon")
+    n_demo = n if len(online) == 0 else int(round(n * float(demo_fraction)))
+    parts = []
+    if n_demo > 0:
+        parts.append(demo.sample(n_demo))
+    if n - n_demo > 0:
+        parts.append(online.sample(n - n_demo))
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=0)
