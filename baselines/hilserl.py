@@ -1,0 +1,607 @@
+"""HIL-SERL: the SAC/RLPD learner with binary takeovers, step-wise (``h = 1``), on TorchRL parts.
+
+This is the ``hil-serl`` baseline of the paper's Table 1 (Section 4.3): a unimodal
+tanh-Gaussian actor and a LayerNorm critic ensemble trained by soft actor-critic on
+symmetric batches (half demonstrations, half online experience, as in RLPD), with offline
+pretraining, a non-updating warm start and installer takeovers. The harness
+(``window_bench.harness``) owns the stages, the buffers and the takeovers; this module owns
+the learner and two rules the harness applies:
+
+* :func:`hilserl_buffers_for` - where a step of a given provenance is stored. As in HIL-SERL,
+  every online transition goes to the online buffer and transitions executed by a takeover
+  ALSO go to the demo buffer (:func:`takeover_segments` cuts them out of an episode log).
+* :func:`symmetric_sampler` - a ``sample() -> TensorDict`` that draws exactly half of every
+  batch from the demo buffer (``window_bench.replay.mixed_batch`` does the same for two
+  :class:`~window_bench.replay.ChunkReplay` buffers).
+
+Defaults follow HIL-SERL's learner (``serl_launcher`` ``SACAgent`` as configured by
+``make_sac_pixel_agent``): 2 critics with LayerNorm and tanh activations, 256x256, target =
+min over both, no entropy backup, temperature initialised at 0.01, target entropy
+``-|A|/2``, critic-to-actor ratio 2. RLPD's variant (10 critics, target = min over 2 members
+drawn without replacement, ReLU, entropy backup, temperature 1.0) is a configuration:
+:data:`RLPD_CONFIG`. Deviations from HIL-SERL, all disclosed in ``docs/baselines.md``: the
+discount is 0.99 (HIL-SERL's examples use 0.97), the log-std is clipped to [-20, 2] (RLPD;
+HIL-SERL clips the std to [1e-5, 5]), the temperature loss uses the actor's samples on
+``obs`` (HIL-SERL's uses samples on ``next_obs``), observations are z-scored with demo
+statistics, and there is no image encoder (the flat 52-float state is the input).
+
+Why the losses are written here instead of ``torchrl.objectives.SACLoss`` (0.14): SACLoss
+always subtracts the entropy term in the TD target (HIL-SERL turns the backup off), takes
+the target min over every member (RLPD draws 2 of 10), trains the actor on the min over
+members (RLPD and HIL-SERL use the mean), and samples with the global torch RNG (an exact
+resume needs the agent's own generators). The networks are TorchRL :class:`~torchrl.modules.MLP`
+stacks; batches are :class:`~tensordict.TensorDict` (keys of
+:func:`window_bench.chunks.chunk_transitions` with ``h = 1``).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import numbers
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict
+from torch import nn
+from torchrl.modules import MLP
+
+from window_bench.steplog import PROVENANCES, EpisodeLog
+
+_ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
+#: Batch keys the learner reads (``valid`` is optional and defaults to all True).
+BATCH_KEYS = ("obs", "actions", "reward", "next_obs", "discount", "terminal")
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+# --------------------------------------------------------------------------- configuration
+def _check_int(name: str, value, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        raise ValueError(f"{name} = {value!r} is not allowed: it must be an integer "
+                         f">= {minimum}")
+
+
+@dataclass(frozen=True)
+class HILSERLConfig:
+    """Hyperparameters of the HIL-SERL learner (defaults: HIL-SERL; see :data:`RLPD_CONFIG`).
+
+    Attributes
+    ----------
+    hidden : tuple of int
+        Hidden widths of the actor and of every critic member.
+    activation : {"tanh", "relu"}
+        Hidden activation (HIL-SERL: tanh; RLPD: ReLU). Each hidden layer is
+        Linear -> LayerNorm (if enabled) -> activation.
+    critic_layernorm, actor_layernorm : bool
+        LayerNorm after every hidden Linear of the critics / the actor (HIL-SERL: both).
+    num_critics : int
+        Critic ensemble size (HIL-SERL 2, RLPD 10).
+    num_min : int
+        The TD target takes the min over this many members drawn without replacement
+        (``num_min == num_critics``: the min over all; RLPD: 2 of 10).
+    log_std_min, log_std_max : float
+        Clip of the actor's log standard deviation.
+    init_temperature : float
+        Initial entropy temperature alpha (HIL-SERL 0.01, RLPD 1.0).
+    target_entropy : float or None
+        Target policy entropy; None means ``-action_dim / 2``.
+    backup_entropy : bool
+        Subtract ``alpha * log pi(a'|s')`` in the TD target (HIL-SERL False, RLPD True).
+    gamma : float
+        Per-step discount; batches must carry ``discount == gamma`` (``h = 1``).
+    tau : float
+        Polyak rate of the target critics, applied after every critic step.
+    actor_lr, critic_lr, temperature_lr : float
+        Adam learning rates.
+    batch_size : int
+        Rows per gradient step (even: half demo, half online).
+    critic_actor_ratio : int
+        Critic steps per :meth:`HILSERLAgent.update` call; the actor and temperature step
+        once per call, on the last critic step's batch.
+    obs_std_floor : float
+        Floor on the observation standard deviation used for z-scoring (constant features,
+        e.g. the vacuum flag in demonstrations from the rack, would divide by zero).
+    """
+
+    hidden: tuple[int, ...] = (256, 256)
+    activation: str = "tanh"
+    critic_layernorm: bool = True
+    actor_layernorm: bool = True
+    num_critics: int = 2
+    num_min: int = 2
+    log_std_min: float = -20.0
+    log_std_max: float = 2.0
+    init_temperature: float = 0.01
+    target_entropy: float | None = None
+    backup_entropy: bool = False
+    gamma: float = 0.99
+    tau: float = 0.005
+    actor_lr: float = 3e-4
+    critic_lr: float = 3e-4
+    temperature_lr: float = 3e-4
+    batch_size: int = 256
+    critic_actor_ratio: int = 2
+    obs_std_floor: float = 1e-2
+
+    @property
+    def h(self) -> int:
+        """Chunk horizon: always 1 (step-wise control), as the harness reads ``config.h``."""
+        return 1
+
+    def __post_init__(self):
+        object.__setattr__(self, "hidden", tuple(self.hidden))
+        if not self.hidden or any(isinstance(w, bool) or not isinstance(w, numbers.Integral)
+                                  or w < 1 for w in self.hidden):
+            raise ValueError(f"hidden = {self.hidden!r} is not allowed: it must be a non-empty "
+                             f"sequence of integers >= 1")
+        if self.activation not in _ACTIVATIONS:
+            raise ValueError(f"activation = {self.activation!r} is not allowed: choose from "
+                             f"{tuple(_ACTIVATIONS)}")
+        _check_int("num_critics", self.num_critics, 1)
+        _check_int("critic_actor_ratio", self.critic_actor_ratio, 1)
+        _check_int("batch_size", self.batch_size, 2)
+        if self.batch_size % 2:
+            raise ValueError(f"batch_size = {self.batch_size} is not allowed: it must be even "
+                             f"(half demo, half online)")
+        _check_int("num_min", self.num_min, 1)
+        if self.num_min > self.num_critics:
+            raise ValueError(f"num_min = {self.num_min} is not allowed: it must lie in "
+                             f"[1, num_critics = {self.num_critics}]")
+        if not (self.log_std_min < self.log_std_max):
+            raise ValueError(f"log_std_min = {self.log_std_min} must be < log_std_max = "
+                             f"{self.log_std_max}")
+        for name in ("init_temperature", "actor_lr", "critic_lr", "temperature_lr",
+                     "obs_std_floor"):
+            value = getattr(self, name)
+            if not (isinstance(value, numbers.Real) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} = {value!r} is not allowed: it must be a finite "
+                                 f"number > 0")
+        if not (isinstance(self.gamma, numbers.Real) and 0.0 <= self.gamma <= 1.0):
+            raise ValueError(f"gamma = {self.gamma!r} is not allowed: it must lie in [0, 1]")
+        if not (isinstance(self.tau, numbers.Real) and 0.0 < self.tau <= 1.0):
+            raise ValueError(f"tau = {self.tau!r} is not allowed: it must lie in (0, 1]")
+        if self.target_entropy is not None and not math.isfinite(self.target_entropy):
+            raise ValueError(f"target_entropy = {self.target_entropy!r} is not allowed: it "
+                             f"must be finite or None")
+
+
+#: RLPD's learner (Ball et al. 2023) in this module's terms.
+RLPD_CONFIG = HILSERLConfig(activation="relu", actor_layernorm=False, num_critics=10,
+                            num_min=2, init_temperature=1.0, backup_entropy=True,
+                            critic_actor_ratio=1)
+
+
+# --------------------------------------------------------------------------- networks
+def _mlp(in_features: int, out_features: int, cfg: HILSERLConfig, layernorm: bool) -> MLP:
+    norm = dict(norm_class=nn.LayerNorm,
+                norm_kwargs=[{"normalized_shape": w} for w in cfg.hidden]) if layernorm else {}
+    net = MLP(in_features=in_features, out_features=out_features, num_cells=list(cfg.hidden),
+              activation_class=_ACTIVATIONS[cfg.activation], **norm)
+    # The references initialise Dense layers Xavier-uniform with zero biases.
+    for layer in net.modules():
+        if isinstance(layer, nn.Linear):
+            nn.init.xavier_uniform_(layer.weight)
+            nn.init.zeros_(layer.bias)
+    return net
+
+
+class TanhGaussianActor(nn.Module):
+    """``pi(a|s)``: an MLP giving the mean and the (clipped) log-std of a Gaussian over
+    pre-squash actions ``u``; the action is ``tanh(u)``, in [-1, 1]^A."""
+
+    def __init__(self, obs_dim: int, action_dim: int, cfg: HILSERLConfig):
+        super().__init__()
+        self.net = _mlp(obs_dim, 2 * action_dim, cfg, cfg.actor_layernorm)
+        self.log_std_min, self.log_std_max = cfg.log_std_min, cfg.log_std_max
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = self.net(obs).chunk(2, dim=-1)
+        return mean, log_std.clamp(self.log_std_min, self.log_std_max)
+
+    def sample(self, obs: torch.Tensor, generator: torch.Generator
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Reparameterised sample ``a = tanh(mean + std * eps)`` and its log-density."""
+        mean, log_std = self(obs)
+        eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+        u = mean + log_std.exp() * eps
+        # log N(u; mean, std) - log|d tanh(u)/du|, with log(1 - tanh(u)^2) written stably.
+        log_prob = (-0.5 * eps.pow(2) - log_std - _HALF_LOG_2PI).sum(-1)
+        log_prob = log_prob - (2.0 * (math.log(2.0) - u - F.softplus(-2.0 * u))).sum(-1)
+        return torch.tanh(u), log_prob
+
+    def mode(self, obs: torch.Tensor) -> torch.Tensor:
+        """The deterministic action ``tanh(mean)`` used for evaluation."""
+        return torch.tanh(self(obs)[0])
+
+
+class CriticEnsemble(nn.Module):
+    """``num_critics`` independent Q-networks ``Q_k(s, a)``; forward returns (E, B)."""
+
+    def __init__(self, obs_dim: int, action_dim: int, cfg: HILSERLConfig):
+        super().__init__()
+        self.members = nn.ModuleList(_mlp(obs_dim + action_dim, 1, cfg, cfg.critic_layernorm)
+                                     for _ in range(cfg.num_critics))
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([obs, action], dim=-1)
+        # A loop over members measured as fast as a batched (bmm) ensemble at E = 2 and 10.
+        return torch.stack([m(x).squeeze(-1) for m in self.members])
+
+
+# --------------------------------------------------------------------------- storage rules
+def hilserl_buffers_for(step_provenance: str) -> tuple[str, ...]:
+    """The buffers a step of this provenance goes to, as HIL-SERL stores them.
+
+    ``"policy"`` -> ``("online",)``; ``"takeover"`` -> ``("online", "demo")`` (intervened
+    transitions are also demonstrations); ``"demo"`` -> ``("demo",)`` (the offline dataset).
+    Raises ``ValueError`` for any other value.
+    """
+    routes = {"demo": ("demo",), "policy": ("online",), "takeover": ("online", "demo")}
+    if step_provenance not in routes:
+        raise ValueError(f"step_provenance = {step_provenance!r} is not allowed: choose from "
+                         f"{PROVENANCES}")
+    return routes[step_provenance]
+
+
+def takeover_segments(episode: EpisodeLog) -> list[EpisodeLog]:
+    """The maximal runs of ``"takeover"`` steps of ``episode``, each as its own step log.
+
+    With ``h = 1`` every transition ``(s_t, a_t, r_t, s_t+1)`` stands alone, so a run
+    ``[t0, t1)`` becomes a log with observations ``s_t0 .. s_t1`` that ends ``terminated`` if
+    the episode terminated on its last step and ``truncated`` otherwise (its last
+    transition then bootstraps from ``s_t1``, as in the full episode). These are what the
+    harness adds to the demo buffer (:func:`hilserl_buffers_for`). Per-step fields are
+    sliced generically (rows ``T`` or ``T + 1``), so fields added to :class:`EpisodeLog`
+    later travel along; the chunk grid is reset to ``h = 1``.
+    """
+    episode.validate()
+    T = episode.T
+    takeover = np.asarray(episode.provenance) == "takeover"
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], takeover.astype(np.int8), [0]])))
+    segments = []
+    for t0, t1 in zip(edges[0::2], edges[1::2]):
+        kwargs = {}
+        for f in dataclasses.fields(episode):
+            value = getattr(episode, f.name)
+            if isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == T + 1:
+                value = value[t0:t1 + 1].copy()
+            elif isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == T:
+                value = value[t0:t1].copy()
+            elif isinstance(value, (dict, list)):
+                value = copy.deepcopy(value)
+            kwargs[f.name] = value
+        ends_episode = t1 == T
+        terminated = np.zeros(t1 - t0, bool)
+        truncated = np.zeros(t1 - t0, bool)
+        if ends_episode and bool(episode.terminated[-1]):
+            terminated[-1] = True
+        else:
+            truncated[-1] = True
+        kwargs.update(terminated=terminated, truncated=truncated, chunk_horizon=1,
+                      chunk_index=None, policy_chunk_start=None)
+        segment = type(episode)(**kwargs)
+        segment.validate()
+        segments.append(segment)
+    return segments
+
+
+def symmetric_sampler(sample_demo: Callable[[int], TensorDict],
+                      sample_online: Callable[[int], TensorDict],
+                      batch_size: int) -> Callable[[], TensorDict]:
+    """``sample() -> TensorDict`` with exactly ``batch_size / 2`` demo rows, then as many
+    online rows (RLPD's symmetric sampling), marked by a boolean ``from_demo`` key.
+
+    ``sample_demo(n)`` / ``sample_online(n)`` draw ``n`` rows from each buffer (e.g.
+    ``ChunkReplay.sample``). Only :data:`BATCH_KEYS` and ``valid`` (where both parts have
+    it) are kept. Raises ``ValueError`` for an odd or non-positive ``batch_size``.
+    """
+    _check_int("batch_size", batch_size, 2)
+    if batch_size % 2:
+        raise ValueError(f"batch_size = {batch_size} is not allowed: it must be even "
+                         f"(half demo, half online)")
+    half = batch_size // 2
+
+    def sample() -> TensorDict:
+        demo, online = sample_demo(half), sample_online(half)
+        keys = [k for k in (*BATCH_KEYS, "valid") if k in demo.keys() and k in online.keys()]
+        batch = torch.cat([demo.select(*keys), online.select(*keys)], dim=0)
+        batch["from_demo"] = torch.arange(batch_size) < half
+        return batch
+
+    return sample
+
+
+def obs_normalizer(episodes: list[EpisodeLog]) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard deviation of every observation row of ``episodes`` (float64);
+    pass them to :class:`HILSERLAgent` (which floors the std at ``obs_std_floor``)."""
+    if not episodes:
+        raise ValueError("obs_normalizer: got no episodes; need at least one")
+    obs = np.concatenate([np.asarray(ep.observations, np.float64) for ep in episodes])
+    return obs.mean(axis=0), obs.std(axis=0)
+
+
+# --------------------------------------------------------------------------- the agent
+class HILSERLAgent:
+    """Soft actor-critic learner of HIL-SERL / RLPD with ``h = 1`` (one-step "chunks").
+
+    Parameters
+    ----------
+    obs_dim : int
+        Size of the flat observation (52 for ``obs_mode="flat"``).
+    action_dim : int
+        Action size (7).
+    config : HILSERLConfig
+        Hyperparameters.
+    seed : int
+        Seeds the initial weights and the agent's two generators (one for acting, one for
+        the updates' samples). The global torch RNG is neither used nor changed.
+    obs_mean, obs_std : array-like of shape (obs_dim,), optional
+        Statistics for z-scoring observations inside the networks (e.g. from
+        :func:`obs_normalizer` over the demos); the std is floored at
+        ``config.obs_std_floor``. Omitted: no normalisation.
+    """
+
+    h = 1
+
+    def __init__(self, obs_dim: int, action_dim: int = 7,
+                 config: HILSERLConfig = HILSERLConfig(), seed: int = 0,
+                 obs_mean=None, obs_std=None):
+        _check_int("obs_dim", obs_dim, 1)
+        _check_int("action_dim", action_dim, 1)
+        _check_int("seed", seed, 0)
+        if not isinstance(config, HILSERLConfig):
+            raise TypeError(f"config must be a HILSERLConfig, got {type(config).__name__}")
+        self.obs_dim, self.action_dim, self.config, self.seed = obs_dim, action_dim, config, seed
+        self.target_entropy = (-action_dim / 2.0 if config.target_entropy is None
+                               else float(config.target_entropy))
+        self.obs_mean, self.obs_std = self._check_stats(obs_mean, obs_std)
+
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.actor = TanhGaussianActor(obs_dim, action_dim, config)
+            self.critic = CriticEnsemble(obs_dim, action_dim, config)
+        self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self.log_alpha = nn.Parameter(torch.tensor(math.log(config.init_temperature)))
+
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.actor_lr)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
+        self.temperature_opt = torch.optim.Adam([self.log_alpha], lr=config.temperature_lr)
+        self._act_rng = torch.Generator().manual_seed(2 * seed)
+        self._update_rng = torch.Generator().manual_seed(2 * seed + 1)
+        self.critic_steps = 0
+        self.actor_steps = 0
+
+    def _check_stats(self, mean, std) -> tuple[torch.Tensor, torch.Tensor]:
+        if (mean is None) != (std is None):
+            raise ValueError("obs_mean and obs_std must be given together or both omitted")
+        if mean is None:
+            return torch.zeros(self.obs_dim), torch.ones(self.obs_dim)
+        out = []
+        for name, arr in (("obs_mean", mean), ("obs_std", std)):
+            arr = np.asarray(arr, dtype=np.float64)
+            if arr.shape != (self.obs_dim,):
+                raise ValueError(f"{name} has shape {arr.shape}, expected ({self.obs_dim},)")
+            if not np.isfinite(arr).all():
+                raise ValueError(f"{name} has non-finite values at indices "
+                                 f"{np.flatnonzero(~np.isfinite(arr)).tolist()}")
+            out.append(arr)
+        if (out[1] < 0).any():
+            raise ValueError(f"obs_std has negative values at indices "
+                             f"{np.flatnonzero(out[1] < 0).tolist()}")
+        std = np.maximum(out[1], self.config.obs_std_floor)
+        return (torch.as_tensor(out[0], dtype=torch.float32),
+                torch.as_tensor(std, dtype=torch.float32))
+
+    @property
+    def temperature(self) -> float:
+        """The current entropy temperature alpha."""
+        return float(self.log_alpha.detach().exp())
+
+    def _normalize(self, obs: torch.Tensor) -> torch.Tensor:
+        return (obs - self.obs_mean) / self.obs_std
+
+    # ------------------------------------------------------------------ acting
+    def act(self, obs, deterministic: bool = False) -> np.ndarray:
+        """Action chunk(s) of length 1: (1, A) for one observation (obs_dim,), (B, 1, A) for
+        a batch (B, obs_dim). ``deterministic`` returns ``tanh(mean)``; otherwise a sample
+        drawn with the agent's acting generator. float32, in [-1, 1]."""
+        x = np.ascontiguousarray(obs, dtype=np.float32)
+        if x.ndim not in (1, 2) or x.shape[-1] != self.obs_dim:
+            raise ValueError(f"obs has shape {x.shape}; expected ({self.obs_dim},) or "
+                             f"(B, {self.obs_dim})")
+        with torch.no_grad():
+            o = self._normalize(torch.from_numpy(x).reshape(-1, self.obs_dim))
+            a = self.actor.mode(o) if deterministic else self.actor.sample(o, self._act_rng)[0]
+        a = a.numpy().astype(np.float32)
+        return a.reshape(1, self.action_dim) if x.ndim == 1 else a[:, None, :]
+
+    # ------------------------------------------------------------------ learning
+    def _prepare(self, batch: TensorDict) -> dict[str, torch.Tensor]:
+        missing = [k for k in BATCH_KEYS if k not in batch.keys()]
+        if missing:
+            raise ValueError(f"batch lacks keys {missing}; it needs {BATCH_KEYS} "
+                             f"(and optionally 'valid')")
+        B = batch.batch_size[0]
+        actions = batch["actions"].to(torch.float32)
+        if actions.ndim == 3:
+            if actions.shape[1] != 1:
+                raise ValueError(f"batch['actions'] has shape {tuple(actions.shape)}: chunks "
+                                 f"of length {actions.shape[1]}, but this agent has h = 1")
+            actions = actions[:, 0]
+        if actions.shape != (B, self.action_dim):
+            raise ValueError(f"batch['actions'] has shape {tuple(batch['actions'].shape)}; "
+                             f"expected ({B}, 1, {self.action_dim}) or ({B}, {self.action_dim})")
+        for key in ("obs", "next_obs"):
+            if tuple(batch[key].shape) != (B, self.obs_dim):
+                raise ValueError(f"batch[{key!r}] has shape {tuple(batch[key].shape)}; "
+                                 f"expected ({B}, {self.obs_dim})")
+        discount = batch["discount"].to(torch.float32).reshape(B)
+        if (discount - self.config.gamma).abs().max() > 1e-6:
+            raise ValueError(f"batch['discount'] holds values in [{float(discount.min())}, "
+                             f"{float(discount.max())}], but h = 1 and gamma = "
+                             f"{self.config.gamma} need gamma ** 1 everywhere; build the "
+                             f"chunks with the agent's gamma")
+        valid = batch["valid"] if "valid" in batch.keys() else torch.ones(B, dtype=torch.bool)
+        return {"obs": self._normalize(batch["obs"].to(torch.float32)),
+                "next_obs": self._normalize(batch["next_obs"].to(torch.float32)),
+                "actions": actions, "discount": discount,
+                "reward": batch["reward"].to(torch.float32).reshape(B),
+                "terminal": batch["terminal"].to(torch.float32).reshape(B),
+                "valid": valid.to(torch.float32).reshape(B)}
+
+    def td_target(self, batch: TensorDict) -> torch.Tensor:
+        """The TD target ``y`` (B,) of one batch, with the current target critics:
+        ``y = r + discount * (1 - terminal) * (min_{k in K} Qbar_k(s', a') - [alpha log pi])``
+        with ``a' ~ pi(.|s')``, ``K`` = ``num_min`` members drawn without replacement and
+        the bracket only if ``backup_entropy``. Draws from the update generator."""
+        return self._td_target(self._prepare(batch))
+
+    @torch.no_grad()
+    def _td_target(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
+        cfg = self.config
+        next_action, next_log_prob = self.actor.sample(b["next_obs"], self._update_rng)
+        next_q = self.target_critic(b["next_obs"], next_action)  # (E, B)
+        if cfg.num_min < cfg.num_critics:
+            members = torch.randperm(cfg.num_critics, generator=self._update_rng)[:cfg.num_min]
+            next_q = next_q[members]
+        next_v = next_q.min(dim=0).values
+        if cfg.backup_entropy:
+            next_v = next_v - self.log_alpha.exp() * next_log_prob
+        return b["reward"] + b["discount"] * (1.0 - b["terminal"]) * next_v
+
+    def _critic_step(self, b: dict[str, torch.Tensor]) -> dict[str, float]:
+        y = self._td_target(b)
+        q = self.critic(b["obs"], b["actions"])  # (E, B)
+        per_row = (q - y).pow(2).mean(dim=0)  # mean over members
+        loss = (per_row * b["valid"]).sum() / b["valid"].sum().clamp(min=1.0)
+        self.critic_opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.critic_opt.step()
+        self._polyak()
+        self.critic_steps += 1
+        return {"critic_loss": loss.item(), "q_mean": float(q.detach().mean()),
+                "target_mean": float(y.mean())}
+
+    @torch.no_grad()
+    def _polyak(self) -> None:
+        online = list(self.critic.parameters()) + list(self.critic.buffers())
+        target = list(self.target_critic.parameters()) + list(self.target_critic.buffers())
+        torch._foreach_lerp_(target, online, self.config.tau)
+
+    def _actor_temperature_step(self, b: dict[str, torch.Tensor]) -> dict[str, float]:
+        alpha = self.log_alpha.detach().exp()
+        action, log_prob = self.actor.sample(b["obs"], self._update_rng)
+        self.critic.requires_grad_(False)  # the critic is frozen in the actor loss
+        try:
+            q = self.critic(b["obs"], action).mean(dim=0)  # mean over members (RLPD, SERL)
+        finally:
+            self.critic.requires_grad_(True)
+        actor_loss = (alpha * log_prob - q).mean()
+        self.actor_opt.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        self.actor_opt.step()
+
+        entropy = -log_prob.detach().mean()
+        # alpha * (H - H_target): lowers alpha while the entropy is above its target.
+        temperature_loss = self.log_alpha.exp() * (entropy - self.target_entropy)
+        self.temperature_opt.zero_grad(set_to_none=True)
+        temperature_loss.backward()
+        self.temperature_opt.step()
+        self.actor_steps += 1
+        return {"actor_loss": actor_loss.item(), "entropy": float(entropy),
+                "temperature_loss": temperature_loss.item(), "temperature": self.temperature}
+
+    def update(self, batch: TensorDict | Callable[[], TensorDict]) -> dict[str, float]:
+        """One learner step: ``critic_actor_ratio`` critic steps (Polyak after each), then
+        one actor step and one temperature step on the last critic step's batch.
+
+        ``batch`` is either a callable ``sample() -> TensorDict`` (called once per critic
+        step, e.g. :func:`symmetric_sampler` or ``lambda: mixed_batch(demo, online, 256)``),
+        as HIL-SERL draws a fresh half/half batch per critic step; or one TensorDict whose
+        rows are split into ``critic_actor_ratio`` equal consecutive minibatches (its size
+        must be a multiple of the ratio; a symmetric batch per critic step then needs its
+        rows interleaved accordingly). Keys: :data:`BATCH_KEYS` and optionally ``valid``
+        (rows with ``valid`` False are left out of the TD loss); ``actions`` (B, 1, A).
+
+        Returns floats: ``critic_loss`` (mean over the critic steps), ``q_mean``,
+        ``target_mean``, ``actor_loss``, ``entropy``, ``temperature_loss``,
+        ``temperature`` (after the step).
+        """
+        ratio = self.config.critic_actor_ratio
+        if callable(batch) and not isinstance(batch, TensorDict):
+            minibatches = [batch() for _ in range(ratio)]
+        elif isinstance(batch, TensorDict):
+            B = batch.batch_size[0]
+            if B < ratio or B % ratio:
+                raise ValueError(f"a batch of {B} rows cannot be split into "
+                                 f"critic_actor_ratio = {ratio} equal minibatches")
+            minibatches = list(batch.split(B // ratio, dim=0))
+        else:
+            raise TypeError(f"batch must be a TensorDict or a callable returning one, got "
+                            f"{type(batch).__name__}")
+        prepared = [self._prepare(mb) for mb in minibatches]
+        critic_infos = [self._critic_step(b) for b in prepared]
+        info = {k: float(np.mean([ci[k] for ci in critic_infos])) for k in critic_infos[0]}
+        info.update(self._actor_temperature_step(prepared[-1]))
+        return info
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        """Everything an exact resume needs: weights, targets, temperature, optimiser
+        states, both generators, step counters, the config and the normalisation."""
+        return {
+            "config": dataclasses.asdict(self.config), "obs_dim": self.obs_dim,
+            "action_dim": self.action_dim, "seed": self.seed,
+            "obs_mean": self.obs_mean.clone(), "obs_std": self.obs_std.clone(),
+            "actor": copy.deepcopy(self.actor.state_dict()),
+            "critic": copy.deepcopy(self.critic.state_dict()),
+            "target_critic": copy.deepcopy(self.target_critic.state_dict()),
+            "log_alpha": self.log_alpha.detach().clone(),
+            "actor_opt": copy.deepcopy(self.actor_opt.state_dict()),
+            "critic_opt": copy.deepcopy(self.critic_opt.state_dict()),
+            "temperature_opt": copy.deepcopy(self.temperature_opt.state_dict()),
+            "act_rng": self._act_rng.get_state(), "update_rng": self._update_rng.get_state(),
+            "critic_steps": self.critic_steps, "actor_steps": self.actor_steps,
+        }
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> "HILSERLAgent":
+        """A new agent restored from :meth:`state_dict` output (e.g. in an evaluation
+        worker)."""
+        names = {f.name for f in dataclasses.fields(HILSERLConfig)}
+        config = HILSERLConfig(**{k: v for k, v in state["config"].items() if k in names})
+        agent = cls(state["obs_dim"], state["action_dim"], config, seed=state["seed"])
+        agent.load_state_dict(state)
+        return agent
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`. The config and the sizes must match this agent's."""
+        mine = dataclasses.asdict(self.config)
+        theirs = dict(state["config"])
+        theirs["hidden"] = tuple(theirs["hidden"])
+        if theirs != mine:
+            diff = sorted(k for k in mine if mine[k] != theirs.get(k))
+            raise ValueError(f"load_state_dict: config differs in {diff}: "
+                             f"{ {k: theirs.get(k) for k in diff} } vs this agent's "
+                             f"{ {k: mine[k] for k in diff} }")
+        for key in ("obs_dim", "action_dim"):
+            if state[key] != getattr(self, key):
+                raise ValueError(f"load_state_dict: {key} = {state[key]} in the state, "
+                                 f"{getattr(self, key)} in this agent")
+        self.seed = state["seed"]
+        self.obs_mean, self.obs_std = state["obs_mean"].clone(), state["obs_std"].clone()
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.target_critic.load_state_dict(state["target_critic"])
+        with torch.no_grad():
+            self.log_alpha.copy_(state["log_alpha"])
+        self.actor_opt.load_state_dict(state["actor_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        self.temperature_opt.load_state_dict(state["temperature_opt"])
+        self._act_rng.set_state(state["act_rng"])
+        self._update_rng.set_state(state["update_rng"])
+        self.critic_steps, self.actor_steps = state["critic_steps"], state["actor_steps"]

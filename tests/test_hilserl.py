@@ -1,0 +1,413 @@
+"""HIL-SERL / RLPD learner (baselines.hilserl): acting, losses, targets, checkpoints, batches.
+
+Networks are shrunk (32x32, batch 32) to keep the file fast; the algorithm is the same at
+every size. One scripted demonstration on WindowInstall-A-v0 (flat observations) serves as
+real data.
+"""
+
+import io
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from baselines.hilserl import (BATCH_KEYS, RLPD_CONFIG, HILSERLAgent, HILSERLConfig,
+                               hilserl_buffers_for, obs_normalizer, symmetric_sampler,
+                               takeover_segments)
+from window_bench.chunks import chunk_transitions
+from window_bench.installer import ScriptedInstaller
+from window_bench.steplog import EpisodeLog
+
+torch.set_num_threads(1)
+OBS_DIM = 52
+GAMMA = 0.99
+SMALL = HILSERLConfig(hidden=(32, 32), batch_size=32)
+
+
+def rollout(env, act, seed, provenance, max_steps=None, episode_id=0):
+    """Run ``act(obs) -> (7,)`` for one episode and log it as an EpisodeLog."""
+    obs, _ = env.reset(seed=seed)
+    O, A, R = [obs], [], []
+    terminated = truncated = False
+    while not (terminated or truncated):
+        a = np.asarray(act(obs), np.float32).reshape(7)
+        obs, r, terminated, truncated, _ = env.step(a)
+        O.append(obs), A.append(a), R.append(r)
+        if max_steps is not None and len(A) >= max_steps:
+            truncated = truncated or not terminated
+    T = len(A)
+    term, trunc = np.zeros(T, bool), np.zeros(T, bool)
+    (term if terminated else trunc)[-1] = True
+    return EpisodeLog(observations=np.array(O), actions=np.array(A),
+                      rewards=np.array(R, np.float32), terminated=term, truncated=trunc,
+                      provenance=[provenance] * T,
+                      takeover_kind=[""] * T, episode_id=episode_id,
+                      env_id="WindowInstall-A-v0", seed=seed)
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = gym.make("WindowInstall-A-v0", obs_mode="flat", max_episode_steps=40)
+    yield e
+    e.close()
+
+
+@pytest.fixture(scope="module")
+def demo():
+    """One complete scripted episode (about 105 steps, terminated by acceptance)."""
+    e = gym.make("WindowInstall-A-v0", obs_mode="flat")
+    inst = ScriptedInstaller(e.unwrapped, seed=0)
+    inst.reset(seed=0)
+    ep = rollout(e, inst.act, seed=0, provenance="demo", episode_id=1)
+    e.close()
+    assert ep.terminated[-1] and ep.T >= 100
+    return ep
+
+
+def to_td(chunks, keys=(*BATCH_KEYS, "valid")):
+    n = len(chunks["obs"])
+    return TensorDict({k: torch.as_tensor(np.asarray(chunks[k])) for k in keys},
+                      batch_size=[n])
+
+
+@pytest.fixture(scope="module")
+def demo_td(demo):
+    return to_td(chunk_transitions(demo, 1, GAMMA))
+
+
+def params(module):
+    return [p.detach().clone() for p in module.parameters()]
+
+
+# --------------------------------------------------------------------------- config
+@pytest.mark.parametrize("kwargs, match", [
+    ({"num_critics": 0}, "num_critics"),
+    ({"num_min": 3}, "num_min"),
+    ({"batch_size": 33}, "batch_size"),
+    ({"critic_actor_ratio": 0}, "critic_actor_ratio"),
+    ({"activation": "gelu"}, "activation"),
+    ({"hidden": ()}, "hidden"),
+    ({"tau": 0.0}, "tau"),
+    ({"gamma": 1.5}, "gamma"),
+    ({"init_temperature": 0.0}, "init_temperature"),
+    ({"log_std_min": 2.0}, "log_std_min"),
+])
+def test_config_rejects_bad_values(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        HILSERLConfig(**kwargs)
+
+
+def test_defaults_are_hilserl_and_rlpd_preset():
+    c = HILSERLConfig()
+    assert (c.hidden, c.num_critics, c.num_min, c.init_temperature, c.backup_entropy,
+            c.critic_actor_ratio, c.batch_size, c.activation) == (
+        (256, 256), 2, 2, 0.01, False, 2, 256, "tanh")
+    assert HILSERLAgent(OBS_DIM, config=SMALL).target_entropy == -3.5
+    assert (RLPD_CONFIG.num_critics, RLPD_CONFIG.num_min, RLPD_CONFIG.backup_entropy) == (
+        10, 2, True)
+
+
+# --------------------------------------------------------------------------- acting
+def test_act_shapes_range_and_determinism(demo):
+    mean, std = obs_normalizer([demo])
+    agent = HILSERLAgent(OBS_DIM, config=SMALL, seed=3, obs_mean=mean, obs_std=std)
+    one, batch = demo.observations[0], demo.observations[:5]
+    a1 = agent.act(one)
+    assert a1.shape == (1, 7) and a1.dtype == np.float32
+    ab = agent.act(batch)
+    assert ab.shape == (5, 1, 7)
+    assert np.all(np.abs(ab) <= 1.0) and np.all(np.abs(a1) <= 1.0)
+    d1, d2 = agent.act(batch, deterministic=True), agent.act(batch, deterministic=True)
+    np.testing.assert_array_equal(d1, d2)
+    s1, s2 = agent.act(batch), agent.act(batch)
+    assert not np.allclose(s1, s2)  # fresh noise on every call
+    assert not np.allclose(s1, d1)
+    # Same seed, same sequence of samples.
+    twin = HILSERLAgent(OBS_DIM, config=SMALL, seed=3, obs_mean=mean, obs_std=std)
+    np.testing.assert_array_equal(twin.act(one), a1)
+    with pytest.raises(ValueError, match="obs has shape"):
+        agent.act(np.zeros(OBS_DIM + 1))
+
+
+def test_agent_rejects_bad_normalization():
+    with pytest.raises(ValueError, match="obs_std"):
+        HILSERLAgent(OBS_DIM, config=SMALL, obs_mean=np.zeros(OBS_DIM),
+                     obs_std=-np.ones(OBS_DIM))
+    with pytest.raises(ValueError, match="together"):
+        HILSERLAgent(OBS_DIM, config=SMALL, obs_mean=np.zeros(OBS_DIM))
+    with pytest.raises(ValueError, match="shape"):
+        HILSERLAgent(OBS_DIM, config=SMALL, obs_mean=np.zeros(3), obs_std=np.ones(3))
+
+
+# --------------------------------------------------------------------------- losses
+def test_update_reduces_critic_loss(demo, demo_td):
+    mean, std = obs_normalizer([demo])
+    cfg = HILSERLConfig(hidden=(32, 32), batch_size=32, critic_actor_ratio=1)
+    agent = HILSERLAgent(OBS_DIM, config=cfg, seed=0, obs_mean=mean, obs_std=std)
+    batch = demo_td[:64]
+    losses = [agent.update(batch)["critic_loss"] for _ in range(60)]
+    assert np.all(np.isfinite(losses))
+    assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:5])
+    assert agent.critic_steps == 60 and agent.actor_steps == 60
+
+
+def test_update_counts_critic_actor_ratio(demo_td):
+    agent = HILSERLAgent(OBS_DIM, config=SMALL)  # ratio 2
+    drawn = []
+
+    def sample():
+        drawn.append(1)
+        return demo_td[:32]
+
+    info = agent.update(sample)
+    assert len(drawn) == 2 and agent.critic_steps == 2 and agent.actor_steps == 1
+    assert set(info) >= {"critic_loss", "actor_loss", "entropy", "temperature"}
+    agent.update(demo_td[:64])  # one TensorDict, split in two minibatches
+    assert agent.critic_steps == 4 and agent.actor_steps == 2
+    with pytest.raises(ValueError, match="cannot be split"):
+        agent.update(demo_td[:33])
+
+
+def test_update_rejects_bad_batches(demo_td):
+    agent = HILSERLAgent(OBS_DIM, config=SMALL)
+    bad = demo_td[:32].clone()
+    bad["discount"] = torch.full((32,), 0.9)
+    with pytest.raises(ValueError, match="discount"):
+        agent.update(torch.cat([bad, bad]))
+    wide = TensorDict({**{k: demo_td[:32][k] for k in BATCH_KEYS},
+                       "actions": torch.zeros(32, 2, 7)}, batch_size=[32])
+    with pytest.raises(ValueError, match="h = 1"):
+        agent.update(torch.cat([wide, wide]))
+    with pytest.raises(ValueError, match="lacks keys"):
+        agent.update(torch.cat([demo_td[:32], demo_td[:32]]).exclude("reward"))
+
+
+@pytest.mark.parametrize("target, direction", [(-50.0, -1), (50.0, +1)])
+def test_temperature_moves_toward_target_entropy(demo_td, target, direction):
+    """Entropy above the target lowers alpha; below it raises alpha (the entropy of a
+    7-D action in [-1, 1]^7 lies below 7 ln 2 ~ 4.9, far from both targets)."""
+    cfg = HILSERLConfig(hidden=(32, 32), batch_size=32, target_entropy=target)
+    agent = HILSERLAgent(OBS_DIM, config=cfg)
+    alphas = [agent.temperature]
+    for _ in range(5):
+        alphas.append(agent.update(demo_td[:64])["temperature"])
+    steps = np.sign(np.diff(alphas))
+    assert np.all(steps == direction), alphas
+
+
+def _constant_target_critics(agent, values):
+    """Make every target member output a constant: zero last-layer weights, bias = value."""
+    with torch.no_grad():
+        for member, v in zip(agent.target_critic.members, values):
+            last = [m for m in member.modules() if isinstance(m, torch.nn.Linear)][-1]
+            last.weight.zero_()
+            last.bias.fill_(v)
+
+
+def _two_rows(reward, terminal):
+    return TensorDict({"obs": torch.zeros(2, OBS_DIM), "next_obs": torch.ones(2, OBS_DIM),
+                       "actions": torch.zeros(2, 1, 7), "reward": torch.tensor(reward),
+                       "discount": torch.full((2,), GAMMA),
+                       "terminal": torch.tensor(terminal), "valid": torch.ones(2, dtype=bool)},
+                      batch_size=[2])
+
+
+def test_td_target_terminal_masks_bootstrap():
+    cfg = HILSERLConfig(hidden=(8,), batch_size=2, num_critics=3, num_min=3)
+    agent = HILSERLAgent(OBS_DIM, config=cfg)
+    _constant_target_critics(agent, [2.0, -1.0, 0.5])
+    y = agent.td_target(_two_rows([0.5, 1.0], [False, True]))
+    # min over the members = -1; no entropy backup (HIL-SERL)
+    torch.testing.assert_close(y, torch.tensor([0.5 + GAMMA * -1.0, 1.0]))
+
+
+def test_td_target_entropy_backup_uses_next_action_log_prob():
+    cfg = HILSERLConfig(hidden=(8,), batch_size=2, num_critics=2, num_min=2,
+                        backup_entropy=True, init_temperature=0.3)
+    agent = HILSERLAgent(OBS_DIM, config=cfg)
+    _constant_target_critics(agent, [2.0, 1.5])
+    state = agent._update_rng.get_state()
+    replay_rng = torch.Generator()
+    replay_rng.set_state(state)
+    with torch.no_grad():
+        _, log_prob = agent.actor.sample(torch.ones(2, OBS_DIM), replay_rng)
+    y = agent.td_target(_two_rows([0.0, 1.0], [False, True]))
+    expected = torch.tensor([GAMMA * (1.5 - 0.3 * float(log_prob[0])), 1.0])
+    torch.testing.assert_close(y, expected)
+
+
+def test_td_target_min_over_random_subset():
+    """RLPD: min over 2 of 4 members drawn without replacement: the largest member can
+    never be the min, every other member sometimes is."""
+    cfg = HILSERLConfig(hidden=(8,), batch_size=2, num_critics=4, num_min=2)
+    agent = HILSERLAgent(OBS_DIM, config=cfg)
+    _constant_target_critics(agent, [1.0, 2.0, 3.0, 4.0])
+    batch = _two_rows([0.0, 0.0], [False, False])
+    seen = {round(float(agent.td_target(batch)[0]) / GAMMA, 4) for _ in range(200)}
+    assert seen == {1.0, 2.0, 3.0}
+
+
+def test_polyak_target_update(demo_td):
+    cfg = HILSERLConfig(hidden=(32, 32), batch_size=32, critic_actor_ratio=1, tau=0.05)
+    agent = HILSERLAgent(OBS_DIM, config=cfg)
+    agent.update(demo_td[:32])  # online and target critics now differ
+    before = params(agent.target_critic)
+    agent.update(demo_td[32:64])
+    after, online = params(agent.target_critic), params(agent.critic)
+    assert any(not torch.equal(a, b) for a, b in zip(after, before))
+    for b, a, o in zip(before, after, online):
+        torch.testing.assert_close(a, 0.95 * b + 0.05 * o, rtol=1e-5, atol=1e-6)
+
+
+def test_invalid_rows_do_not_train_the_critic(demo_td):
+    """Rows with valid False (truncated windows for h > 1) are out of the TD loss."""
+    cfg = HILSERLConfig(hidden=(16,), batch_size=32, critic_actor_ratio=1)
+    batch = demo_td[:32].clone()
+    batch["valid"] = torch.zeros(32, dtype=torch.bool)
+    agent = HILSERLAgent(OBS_DIM, config=cfg)
+    before = params(agent.critic)
+    info = agent.update(batch)
+    assert info["critic_loss"] == 0.0
+    assert all(torch.equal(a, b) for a, b in zip(before, params(agent.critic)))
+
+
+# --------------------------------------------------------------------------- checkpoints
+def test_state_dict_round_trip_is_an_exact_resume(demo, demo_td):
+    mean, std = obs_normalizer([demo])
+    a = HILSERLAgent(OBS_DIM, config=SMALL, seed=0, obs_mean=mean, obs_std=std)
+    for i in range(3):
+        a.update(demo_td[:64])
+        a.act(demo.observations[0])
+    buf = io.BytesIO()
+    torch.save(a.state_dict(), buf)
+    buf.seek(0)
+    b = HILSERLAgent(OBS_DIM, config=SMALL, seed=7)  # different seed and no normalization
+    b.load_state_dict(torch.load(buf))
+    for agent in (a, b):  # identical futures
+        agent.info = agent.update(demo_td[40:104])
+    assert a.info == b.info
+    for pa, pb in zip(params(a.actor) + params(a.critic) + params(a.target_critic),
+                      params(b.actor) + params(b.critic) + params(b.target_critic)):
+        assert torch.equal(pa, pb)
+    assert a.temperature == b.temperature and a.critic_steps == b.critic_steps == 8
+    np.testing.assert_array_equal(a.act(demo.observations[:4]), b.act(demo.observations[:4]))
+    c = HILSERLAgent.from_state_dict(a.state_dict())
+    assert c.config == a.config and c.config.h == 1
+    np.testing.assert_array_equal(c.act(demo.observations[:4], deterministic=True),
+                                  a.act(demo.observations[:4], deterministic=True))
+    with pytest.raises(ValueError, match="config differs"):
+        HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(16,), batch_size=32)
+                     ).load_state_dict(a.state_dict())
+
+
+# --------------------------------------------------------------------------- buffers
+def test_buffer_routing_rule():
+    assert hilserl_buffers_for("policy") == ("online",)
+    assert hilserl_buffers_for("takeover") == ("online", "demo")
+    assert hilserl_buffers_for("demo") == ("demo",)
+    with pytest.raises(ValueError, match="step_provenance"):
+        hilserl_buffers_for("operator")
+
+
+def test_takeover_segments_become_h1_demo_logs():
+    T = 6
+    prov = ["policy", "takeover", "takeover", "policy", "takeover", "takeover"]
+    obs = np.arange(T + 1, dtype=np.float32)[:, None].repeat(3, axis=1)
+    rewards = np.zeros(T, np.float32)
+    rewards[-1] = 1.0
+    term = np.zeros(T, bool)
+    term[-1] = True
+    ep = EpisodeLog(observations=obs, actions=np.arange(T * 7, dtype=np.float32).reshape(T, 7),
+                    rewards=rewards, terminated=term, truncated=np.zeros(T, bool),
+                    provenance=prov, takeover_kind=["" if p == "policy" else "safety"
+                                                    for p in prov],
+                    episode_id=4, chunk_horizon=3)
+    first, second = takeover_segments(ep)
+    np.testing.assert_array_equal(first.observations[:, 0], [1, 2, 3])
+    np.testing.assert_array_equal(first.actions, ep.actions[1:3])
+    assert first.truncated[-1] and not first.terminated.any()
+    np.testing.assert_array_equal(second.observations[:, 0], [4, 5, 6])
+    assert second.terminated[-1] and second.rewards[-1] == 1.0
+    for seg in (first, second):
+        assert seg.episode_id == 4 and seg.chunk_horizon == 1
+        assert set(seg.provenance) == {"takeover"}
+        ch = chunk_transitions(seg, 1, GAMMA)
+        assert ch["valid"].all()  # each step bootstraps from its own next state
+    np.testing.assert_array_equal(chunk_transitions(first, 1, GAMMA)["next_obs"][:, 0], [2, 3])
+    np.testing.assert_array_equal(chunk_transitions(second, 1, GAMMA)["terminal"],
+                                  [False, True])
+    no_takeover = EpisodeLog(observations=obs, actions=ep.actions, rewards=rewards,
+                             terminated=term, truncated=np.zeros(T, bool),
+                             provenance=["policy"] * T, takeover_kind=[""] * T)
+    assert takeover_segments(no_takeover) == []
+
+
+def test_symmetric_sampler_is_exactly_half_demo(demo_td):
+    online_td = demo_td.clone()
+    online_td["obs"] = online_td["obs"] + 1000.0  # tell the rows apart
+    gen = torch.Generator().manual_seed(0)
+
+    def draw(td):
+        return lambda n: td[torch.randint(len(td), (n,), generator=gen)]
+
+    sample = symmetric_sampler(draw(demo_td), draw(online_td), 32)
+    for _ in range(5):
+        batch = sample()
+        assert batch.batch_size == torch.Size([32])
+        assert int(batch["from_demo"].sum()) == 16
+        from_online = batch["obs"][:, 0] > 500.0
+        assert torch.equal(from_online, ~batch["from_demo"])
+    with pytest.raises(ValueError, match="even"):
+        symmetric_sampler(draw(demo_td), draw(online_td), 31)
+
+
+def test_rlpd_batches_from_chunk_replay_are_half_demo(env, demo):
+    """The harness's 1:1 batch (window_bench.replay.mixed_batch) feeds every critic step."""
+    from window_bench.replay import PROVENANCE_CODES, ChunkReplay, mixed_batch
+
+    demo_buf, online_buf = ChunkReplay(1000, 1, GAMMA, seed=0), ChunkReplay(1000, 1, GAMMA, 1)
+    demo_buf.add_episode(demo)
+    agent = HILSERLAgent(OBS_DIM, config=SMALL)
+    policy_ep = rollout(env, lambda o: agent.act(o)[0], seed=5, provenance="policy",
+                        max_steps=20, episode_id=2)
+    online_buf.add_episode(policy_ep)
+    batches = []
+
+    def sample():
+        batches.append(mixed_batch(demo_buf, online_buf, SMALL.batch_size))
+        return batches[-1]
+
+    agent.update(sample)
+    assert len(batches) == SMALL.critic_actor_ratio
+    for batch in batches:
+        codes = batch["provenance_code"][:, 0]
+        assert int((codes == PROVENANCE_CODES["demo"]).sum()) == SMALL.batch_size // 2
+        assert int((codes == PROVENANCE_CODES["policy"]).sum()) == SMALL.batch_size // 2
+
+
+# --------------------------------------------------------------------------- smoke
+def test_pretrain_collect_update_evaluate(env, demo):
+    """Offline pretraining on demos, a warm-start episode without updates, online updates on
+    half/half batches, then a deterministic evaluation episode: the agent runs end to end."""
+    from window_bench.replay import ChunkReplay, mixed_batch
+
+    mean, std = obs_normalizer([demo])
+    agent = HILSERLAgent(OBS_DIM, config=SMALL, seed=1, obs_mean=mean, obs_std=std)
+    demo_buf, online_buf = ChunkReplay(1000, 1, GAMMA, seed=0), ChunkReplay(1000, 1, GAMMA, 1)
+    demo_buf.add_episode(demo)
+    for _ in range(3):  # offline: the online buffer is empty, batches are all demo
+        agent.update(lambda: mixed_batch(demo_buf, online_buf, SMALL.batch_size))
+    frozen = params(agent.actor)
+    warm = rollout(env, lambda o: agent.act(o)[0], seed=11, provenance="policy",
+                   max_steps=15, episode_id=3)
+    assert all(torch.equal(a, b) for a, b in zip(frozen, params(agent.actor)))
+    for buffer in hilserl_buffers_for("policy"):
+        {"online": online_buf, "demo": demo_buf}[buffer].add_episode(warm)
+    for _ in range(3):
+        info = agent.update(lambda: mixed_batch(demo_buf, online_buf, SMALL.batch_size))
+    assert all(np.isfinite(v) for v in info.values())
+    evaluation = rollout(env, lambda o: agent.act(o, deterministic=True)[0], seed=100,
+                         provenance="policy", max_steps=15)
+    assert evaluation.T == 15 and np.all(np.abs(evaluation.actions) <= 1.0)
