@@ -1,0 +1,510 @@
+"""QC-FQL: Q-chunking with a flow teacher distilled into a one-step student (paper Sec. 3.5).
+
+Read top to bottom: the config, the three networks, the losses (paper Eqs. 6-9), one
+update, acting, and the state dict. Everything runs in PyTorch on one CPU thread; TorchRL
+supplies the teacher/student MLPs (``torchrl.modules.MLP``) and the replay
+(:mod:`window_bench.replay`); the fused critic ensemble, the flow teacher, the distillation
+and the Polyak average are written here because TorchRL has no equivalent (its
+``EnsembleModule`` vmaps a module; its ``SoftUpdate`` needs a ``LossModule``).
+
+The agent acts in chunks: from state ``s_kh`` the student ``mu(s, z)``, ``z ~ N(0, I)``,
+outputs a whole chunk ``u_k`` of ``h`` actions (h x 7 values in [-1, 1]) that runs
+open-loop. Per update, on a batch of fixed-grid chunk transitions
+(:func:`window_bench.chunks.chunk_transitions`):
+
+* critic (Eqs. 6-7): ``y = R_k + gamma^h (1 - terminal) mean_i Qbar_i(s', clip(mu(s', z')))``,
+  loss ``mean_i,b valid_b (Q_i(s, u) - y)^2``; windows cut short by truncation
+  (``valid = False``) contribute nothing;
+* teacher (Eq. 8, rectified flow): ``x_t = (1 - t) x0 + t u``, loss
+  ``|v(s, x_t, t) - (u - x0)|^2`` masked per step by ``action_mask``;
+* student (Eq. 9): ``alpha |mu(s, z) - a_xi(s, z)|^2 - mean_i Q_i(s, clip(mu(s, z)))`` with
+  the SAME ``z`` for student and teacher, ``a_xi`` = ``flow_steps`` Euler steps of the
+  teacher from ``z`` (clipped at the end only), and the critic frozen;
+* one Adam step over all three networks on the summed loss (stop-gradients decide who learns
+  what, as in the reference, so this equals three separate Adams), then Polyak averaging of
+  the target critic.
+
+See ``docs/qcfql.md`` for the equations mapped to the code, paper-vs-reference choices and
+the measured update speed.
+"""
+
+from __future__ import annotations
+
+import copy
+import numbers
+from dataclasses import asdict, dataclass, fields
+from typing import Mapping
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torchrl.modules import MLP
+
+# ---------------------------------------------------------------------------- config
+
+
+@dataclass
+class QCFQLConfig:
+    """Hyperparameters of QC-FQL. Defaults: the paper's Table 8 (see ``docs/qcfql.md``)."""
+
+    h: int = 10
+    """Chunk horizon in 10 Hz steps; ``h = 1`` gives the step-wise variants."""
+    hidden: tuple[int, ...] = (512, 512, 512, 512)
+    """Hidden widths of every MLP (critic, teacher, student)."""
+    num_critics: int = 2
+    """Critic ensemble size."""
+    alpha: float = 300.0
+    """Distillation weight (paper Eq. 9; the reference's default is 100 on a per-entry mean)."""
+    flow_steps: int = 10
+    """K, the Euler steps of the teacher when it produces distillation targets."""
+    lr: float = 3e-4
+    """Adam learning rate (one Adam over all networks)."""
+    tau: float = 0.005
+    """Polyak rate of the target critic, applied every update."""
+    gamma: float = 0.99
+    """Per-step discount; the chunk discount ``gamma ** h`` comes with each batch."""
+    batch_size: int = 256
+    """Chunks per update (used by the harness when sampling; ``update`` takes any size)."""
+    q_agg: str = "mean"
+    """Aggregation over the ensemble in the TD target: ``"mean"`` (paper, reference) or
+    ``"min"`` (clipped double Q)."""
+    distill_reduction: str = "sum"
+    """``"sum"``: squared l2 over the whole h x 7 chunk, averaged over the batch (paper
+    Eq. 9: "not a step-wise average"); ``"mean"``: mean over all entries as the reference
+    code does (equivalent to ``alpha / (7 h)`` with ``"sum"``)."""
+    normalize_q_loss: bool = False
+    """Divide the student's Q term by the detached batch mean of ``|Q|`` (FQL's option; off in
+    the QC-FQL reference and here)."""
+    gelu_approximate: str = "tanh"
+    """GELU variant of every hidden layer: ``"tanh"`` (the reference, flax's default) or
+    ``"none"`` (exact erf GELU; differs by at most 5e-4 and runs faster on CPU, see
+    ``docs/qcfql.md``)."""
+    critic_layer_norm: bool = True
+    """LayerNorm (eps 1e-6) after each hidden activation of the critic (reference)."""
+    obs_std_floor: float = 1e-3
+    """Lower bound applied to the observation std given at construction."""
+
+    def __post_init__(self):
+        self.hidden = tuple(self.hidden)
+        for name in ("h", "num_critics", "flow_steps", "batch_size"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+                raise ValueError(f"QCFQLConfig.{name} = {value!r} is not allowed: it must be "
+                                 f"an integer >= 1")
+        if not self.hidden or any(isinstance(w, bool) or not isinstance(w, numbers.Integral)
+                                  or w < 1 for w in self.hidden):
+            raise ValueError(f"QCFQLConfig.hidden = {self.hidden!r} is not allowed: it must be "
+                             f"a non-empty tuple of integers >= 1")
+        checks = (("alpha", 0.0, float("inf"), True), ("lr", 0.0, float("inf"), False),
+                  ("tau", 0.0, 1.0, False), ("gamma", 0.0, 1.0, True),
+                  ("obs_std_floor", 0.0, float("inf"), False))
+        for name, lo, hi, lo_ok in checks:
+            value = getattr(self, name)
+            ok = (isinstance(value, numbers.Real) and not isinstance(value, bool)
+                  and (lo <= value if lo_ok else lo < value) and value <= hi)
+            if not ok:
+                interval = f"{'[' if lo_ok else '('}{lo}, {hi}]"
+                raise ValueError(f"QCFQLConfig.{name} = {value!r} is not allowed: it must be "
+                                 f"a real number in {interval}")
+        if self.q_agg not in ("mean", "min"):
+            raise ValueError(f"QCFQLConfig.q_agg = {self.q_agg!r} is not allowed: use 'mean' "
+                             f"or 'min'")
+        if self.gelu_approximate not in ("tanh", "none"):
+            raise ValueError(f"QCFQLConfig.gelu_approximate = {self.gelu_approximate!r} is "
+                             f"not allowed: use 'tanh' or 'none'")
+        if self.distill_reduction not in ("sum", "mean"):
+            raise ValueError(f"QCFQLConfig.distill_reduction = {self.distill_reduction!r} is "
+                             f"not allowed: use 'sum' or 'mean'")
+
+
+#: Named configurations: ``paper`` (Table 8, 4 x 512) and ``cpu`` (2 x 256 networks, about 6x
+#: faster updates on one CPU thread; ``benchmarks/update_speed.py`` measures both).
+PROFILES = {"paper": QCFQLConfig(), "cpu": QCFQLConfig(hidden=(256, 256))}
+
+# ---------------------------------------------------------------------------- networks
+
+
+def _xavier_(weight: torch.Tensor, fan_in: int, fan_out: int, gen: torch.Generator) -> None:
+    """Xavier-uniform init of ``weight`` with explicit fans (a stacked ensemble weight has
+    the fans of one member)."""
+    bound = float(np.sqrt(6.0 / (fan_in + fan_out)))
+    with torch.no_grad():
+        weight.uniform_(-bound, bound, generator=gen)
+
+
+class EnsembleCritic(nn.Module):
+    """``num`` critics ``Q_i(s, u)`` with their own parameters, evaluated in one call.
+
+    Member ``i``: hidden blocks Linear -> GELU(tanh) -> LayerNorm(eps 1e-6), output
+    Linear(1) (``members[i].linears`` / ``members[i].norms``). The members run one after the
+    other with plain ``F.linear``: on one CPU thread this measured faster than stacking the
+    members' weights for ``torch.baddbmm`` or ``torch.vmap`` (``docs/qcfql.md``).
+    """
+
+    def __init__(self, in_dim: int, hidden: tuple[int, ...], num: int, layer_norm: bool,
+                 gen: torch.Generator, gelu_approximate: str = "tanh"):
+        super().__init__()
+        self.num, self.layer_norm, self.gelu_approximate = num, layer_norm, gelu_approximate
+        dims = (in_dim, *hidden, 1)
+        self.members = nn.ModuleList()
+        for _ in range(num):
+            member = nn.Module()
+            member.linears = nn.ModuleList([nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:])])
+            member.norms = nn.ModuleList(
+                [nn.LayerNorm(d, eps=1e-6) for d in hidden] if layer_norm else [])
+            for lin in member.linears:
+                _xavier_(lin.weight, lin.in_features, lin.out_features, gen)
+                nn.init.zeros_(lin.bias)
+            self.members.append(member)
+
+    def forward(self, x: torch.Tensor, frozen: bool = False) -> torch.Tensor:
+        """``x`` (B, in) -> Q values (num, B). ``frozen=True`` detaches the parameters, so a
+        backward pass reaches the input (the student's chunk) but not the critic."""
+        p = (lambda t: t.detach()) if frozen else (lambda t: t)
+        out = []
+        for member in self.members:
+            y = x
+            last = len(member.linears) - 1
+            for i, lin in enumerate(member.linears):
+                y = F.linear(y, p(lin.weight), p(lin.bias))
+                if i == last:
+                    break
+                y = F.gelu(y, approximate=self.gelu_approximate)
+                if self.layer_norm:
+                    norm = member.norms[i]
+                    y = F.layer_norm(y, y.shape[-1:], p(norm.weight), p(norm.bias), norm.eps)
+            out.append(y.squeeze(-1))
+        return torch.stack(out)
+
+
+def _mlp(in_dim: int, out_dim: int, hidden: tuple[int, ...], gen: torch.Generator,
+         gelu_approximate: str) -> MLP:
+    """Linear -> GELU hidden blocks, linear output; Xavier-uniform weights, zero biases."""
+    net = MLP(in_features=in_dim, out_features=out_dim, num_cells=list(hidden),
+              activation_class=nn.GELU, activation_kwargs={"approximate": gelu_approximate})
+    for module in net.modules():
+        if isinstance(module, nn.Linear):
+            _xavier_(module.weight, module.in_features, module.out_features, gen)
+            nn.init.zeros_(module.bias)
+    return net
+
+
+class VectorField(nn.Module):
+    """The flow teacher ``v(s, x_t, t)``: input ``concat(s, x_t, t)``, t a raw scalar in [0, 1).
+
+    The observation part of the first layer is the same at every Euler step, so
+    :meth:`integrate` computes it once.
+    """
+
+    def __init__(self, obs_dim: int, chunk_dim: int, hidden: tuple[int, ...],
+                 gen: torch.Generator, gelu_approximate: str = "tanh"):
+        super().__init__()
+        self.obs_dim, self.chunk_dim = obs_dim, chunk_dim
+        self.net = _mlp(obs_dim + chunk_dim + 1, chunk_dim, hidden, gen, gelu_approximate)
+
+    def forward(self, obs: torch.Tensor, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([obs, x, t], dim=-1))
+
+    def integrate(self, obs: torch.Tensor, z: torch.Tensor, steps: int) -> torch.Tensor:
+        """Euler from ``x = z`` over ``steps`` steps, ``x += v(s, x, k/steps) / steps``;
+        clipped to [-1, 1] at the end only (reference ``compute_flow_actions``)."""
+        first, rest = self.net[0], list(self.net)[1:]
+        w_obs = first.weight[:, :self.obs_dim]
+        w_x = first.weight[:, self.obs_dim:self.obs_dim + self.chunk_dim]
+        w_t = first.weight[:, -1]
+        obs_part = torch.addmm(first.bias, obs, w_obs.t())
+        x = z
+        for k in range(steps):
+            pre = torch.addmm(obs_part + (k / steps) * w_t, x, w_x.t())
+            for layer in rest:
+                pre = layer(pre)
+            x = x + pre / steps
+        return x.clamp(-1.0, 1.0)
+
+
+class OneStepPolicy(nn.Module):
+    """The student ``mu(s, z)``: input ``concat(s, z)``, output an unclipped chunk."""
+
+    def __init__(self, obs_dim: int, chunk_dim: int, hidden: tuple[int, ...],
+                 gen: torch.Generator, gelu_approximate: str = "tanh"):
+        super().__init__()
+        self.net = _mlp(obs_dim + chunk_dim, chunk_dim, hidden, gen, gelu_approximate)
+
+    def forward(self, obs: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([obs, z], dim=-1))
+
+
+# ---------------------------------------------------------------------------- agent
+
+#: Keys :meth:`QCFQLAgent.update` reads from a batch (as made by ``chunk_transitions``).
+BATCH_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount", "terminal",
+              "valid")
+
+
+class QCFQLAgent:
+    """QC-FQL agent: fused critic ensemble, flow teacher, one-step student.
+
+    Parameters
+    ----------
+    obs_dim : int
+        Size of the flat observation.
+    action_dim : int
+        Size of one 10 Hz action (7 here); the chunk has ``h * action_dim`` values.
+    config : QCFQLConfig
+        Hyperparameters (copied).
+    seed : int
+        Seeds the network initialisation and the agent's two noise generators (one for
+        :meth:`act`, one for :meth:`update`); the global torch RNG is neither used nor
+        advanced.
+    obs_mean, obs_std : np.ndarray, optional
+        Fixed observation normaliser ``(obs - mean) / max(std, config.obs_std_floor)``,
+        normally computed by the harness from the demonstrations. Default: identity.
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int = 7, config: QCFQLConfig | None = None,
+                 seed: int = 0, obs_mean: np.ndarray | None = None,
+                 obs_std: np.ndarray | None = None):
+        config = QCFQLConfig() if config is None else config
+        if not isinstance(config, QCFQLConfig):
+            raise TypeError(f"config must be a QCFQLConfig, got {type(config).__name__}")
+        for name, value in (("obs_dim", obs_dim), ("action_dim", action_dim)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+                raise ValueError(f"{name} = {value!r} is not allowed: it must be an integer "
+                                 f">= 1")
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+            raise ValueError(f"seed = {seed!r} is not allowed: it must be an integer >= 0")
+        self.config = copy.deepcopy(config)
+        self.obs_dim, self.action_dim, self.seed = int(obs_dim), int(action_dim), int(seed)
+        self.chunk_dim = self.config.h * self.action_dim
+        self.num_updates = 0
+
+        mean = np.zeros(obs_dim) if obs_mean is None else np.asarray(obs_mean, np.float64)
+        std = np.ones(obs_dim) if obs_std is None else np.asarray(obs_std, np.float64)
+        for name, arr in (("obs_mean", mean), ("obs_std", std)):
+            if arr.shape != (obs_dim,) or not np.all(np.isfinite(arr)):
+                raise ValueError(f"{name}: expected {obs_dim} finite values, got shape "
+                                 f"{arr.shape}")
+        self.obs_mean = torch.as_tensor(mean, dtype=torch.float32)
+        self.obs_std = torch.as_tensor(np.maximum(std, self.config.obs_std_floor),
+                                       dtype=torch.float32)
+
+        cfg = self.config
+        init_gen = torch.Generator().manual_seed(self.seed)
+        act = cfg.gelu_approximate
+        self.critic = EnsembleCritic(obs_dim + self.chunk_dim, cfg.hidden, cfg.num_critics,
+                                     cfg.critic_layer_norm, init_gen, act)
+        self.teacher = VectorField(obs_dim, self.chunk_dim, cfg.hidden, init_gen, act)
+        self.student = OneStepPolicy(obs_dim, self.chunk_dim, cfg.hidden, init_gen, act)
+        self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self._params = [*self.critic.parameters(), *self.teacher.parameters(),
+                        *self.student.parameters()]
+        # fused Adam: one kernel for all parameters (the same update rule as Adam)
+        self.optimizer = torch.optim.Adam(self._params, lr=cfg.lr, fused=True)
+        self._online = list(self.critic.parameters())
+        self._target = list(self.target_critic.parameters())
+        # separate streams: evaluation rollouts do not shift the training noise
+        self.act_generator = torch.Generator().manual_seed(self.seed + 1)
+        self.update_generator = torch.Generator().manual_seed(self.seed + 2)
+
+    # ------------------------------------------------------------------ helpers
+    def normalize(self, obs: torch.Tensor) -> torch.Tensor:
+        """``(obs - mean) / std`` with the fixed normaliser."""
+        return (obs - self.obs_mean) / self.obs_std
+
+    def _noise(self, batch: int) -> torch.Tensor:
+        return torch.randn(batch, self.chunk_dim, generator=self.update_generator)
+
+    def prepare(self, batch: Mapping) -> dict[str, torch.Tensor]:
+        """Batch (TensorDict or dict of tensors/arrays, keys :data:`BATCH_KEYS`) -> float32
+        tensors with normalised observations and flattened chunks. Raises ``ValueError`` on
+        a missing key or a shape that does not fit this agent."""
+        missing = [k for k in BATCH_KEYS if k not in batch.keys()]
+        if missing:
+            raise ValueError(f"QCFQLAgent.update: batch lacks keys {missing}; expected "
+                             f"{BATCH_KEYS} (chunk_transitions' layout)")
+        t = {k: torch.as_tensor(batch[k]) for k in BATCH_KEYS}
+        B = t["obs"].shape[0]
+        h, A = self.config.h, self.action_dim
+        expected = {"obs": (B, self.obs_dim), "next_obs": (B, self.obs_dim),
+                    "actions": (B, h, A), "action_mask": (B, h), "reward": (B,),
+                    "discount": (B,), "terminal": (B,), "valid": (B,)}
+        for key, shape in expected.items():
+            if tuple(t[key].shape) != shape:
+                raise ValueError(f"QCFQLAgent.update: batch[{key!r}] has shape "
+                                 f"{tuple(t[key].shape)}, expected {shape} (h = {h}, "
+                                 f"action_dim = {A}, obs_dim = {self.obs_dim})")
+        f32 = torch.float32
+        return {"obs": self.normalize(t["obs"].to(f32)),
+                "next_obs": self.normalize(t["next_obs"].to(f32)),
+                "actions": t["actions"].to(f32).reshape(B, h * A),
+                "action_mask": t["action_mask"].to(f32),
+                "reward": t["reward"].to(f32), "discount": t["discount"].to(f32),
+                "not_terminal": 1.0 - t["terminal"].to(f32), "valid": t["valid"].to(f32)}
+
+    # ------------------------------------------------------------------ losses
+    def td_target(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Eq. 6: ``R + gamma^h (1 - terminal) agg_i Qbar_i(s', clip(mu(s', z')))``."""
+        with torch.no_grad():
+            next_u = self.student(b["next_obs"], self._noise(len(b["reward"]))).clamp(-1, 1)
+            next_q = self.target_critic(torch.cat([b["next_obs"], next_u], dim=-1))
+            next_q = next_q.mean(0) if self.config.q_agg == "mean" else next_q.min(0).values
+            return b["reward"] + b["discount"] * b["not_terminal"] * next_q
+
+    def critic_loss(self, b: dict[str, torch.Tensor],
+                    y: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Eq. 7 over the members and the batch; invalid (truncated short) windows are
+        zeroed, and the mean keeps them in the denominator as the reference does.
+        ``y`` defaults to :meth:`td_target`. Returns ``(loss, q)``, ``q`` (num_critics, B)."""
+        y = self.td_target(b) if y is None else y
+        q = self.critic(torch.cat([b["obs"], b["actions"]], dim=-1))
+        loss = ((q - y).square() * b["valid"]).mean()
+        return loss, q.detach()
+
+    def flow_loss(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Eq. 8 (rectified flow BC), one ``t ~ U[0, 1)`` per sample; squared error masked per
+        step by ``action_mask``, mean over all B x h x A entries (reference)."""
+        x1 = b["actions"]
+        B = x1.shape[0]
+        x0 = self._noise(B)
+        t = torch.rand(B, 1, generator=self.update_generator)
+        x_t = (1.0 - t) * x0 + t * x1
+        err = (self.teacher(b["obs"], x_t, t) - (x1 - x0)).square()
+        err = err.view(B, self.config.h, self.action_dim) * b["action_mask"].unsqueeze(-1)
+        return err.mean()
+
+    def teacher_actions(self, obs: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """``a_xi(s, z)``: the teacher's chunk from noise ``z`` (no gradient)."""
+        with torch.no_grad():
+            return self.teacher.integrate(obs, z, self.config.flow_steps)
+
+    def actor_loss(self, b: dict[str, torch.Tensor], z: torch.Tensor | None = None,
+                   target: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Eq. 9: ``alpha * distill - mean_i Q_i(s, clip(mu(s, z)))``, critic frozen, teacher
+        detached, the SAME ``z`` for both (drawn here unless given; ``target`` may pass a
+        precomputed ``teacher_actions(obs, z)``)."""
+        obs = b["obs"]
+        z = self._noise(obs.shape[0]) if z is None else z
+        target = self.teacher_actions(obs, z) if target is None else target
+        u = self.student(obs, z)
+        sq = (u - target).square()
+        distill = sq.sum(-1).mean() if self.config.distill_reduction == "sum" else sq.mean()
+        q_pi = self.critic(torch.cat([obs, u.clamp(-1.0, 1.0)], dim=-1), frozen=True).mean(0)
+        q_loss = -q_pi.mean()
+        if self.config.normalize_q_loss:
+            q_loss = q_loss / q_pi.abs().mean().detach().clamp_min(1e-6)
+        return {"loss": self.config.alpha * distill + q_loss, "distill": distill,
+                "q_loss": q_loss, "q_pi": q_pi.detach()}
+
+    # ------------------------------------------------------------------ update
+    def polyak(self) -> None:
+        """``target <- target + tau (online - target)`` for every critic parameter."""
+        with torch.no_grad():
+            torch._foreach_lerp_(self._target, self._online, self.config.tau)
+
+    def update(self, batch: Mapping) -> dict[str, float]:
+        """One gradient step on all three networks plus the Polyak step; returns metrics.
+
+        ``batch``: keys :data:`BATCH_KEYS` as produced by ``chunk_transitions`` /
+        :class:`window_bench.replay.ChunkReplay` (``obs`` (B, obs_dim), ``actions`` (B, h, 7),
+        ``action_mask`` (B, h), ``reward``, ``discount``, ``terminal``, ``valid`` (B,)).
+        """
+        b = self.prepare(batch)
+        critic_loss, q = self.critic_loss(b)
+        flow_loss = self.flow_loss(b)
+        actor = self.actor_loss(b)
+        loss = critic_loss + flow_loss + actor["loss"]
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.polyak()
+        self.num_updates += 1
+        values = torch.stack([
+            loss.detach(), critic_loss.detach(), flow_loss.detach(), actor["distill"].detach(),
+            actor["q_loss"].detach(), actor["loss"].detach(), q.mean(), q.max(), q.min(),
+            actor["q_pi"].mean(), b["valid"].mean()]).tolist()
+        names = ("loss", "critic_loss", "flow_loss", "distill_loss", "q_loss", "actor_loss",
+                 "q_mean", "q_max", "q_min", "q_policy", "valid_fraction")
+        return dict(zip(names, values))
+
+    # ------------------------------------------------------------------ acting
+    def _obs_tensor(self, obs) -> tuple[torch.Tensor, bool]:
+        o = torch.as_tensor(np.asarray(obs, dtype=np.float32))
+        single = o.ndim == 1
+        o = o.unsqueeze(0) if single else o
+        if o.ndim != 2 or o.shape[1] != self.obs_dim:
+            raise ValueError(f"obs: expected shape ({self.obs_dim},) or (B, {self.obs_dim}), "
+                             f"got {tuple(np.shape(obs))}")
+        return self.normalize(o), single
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray, deterministic: bool = False,
+            policy: str = "student") -> np.ndarray:
+        """Action chunk(s) for ``obs`` (obs_dim,) or (B, obs_dim): (h, A) or (B, h, A) float32
+        in [-1, 1].
+
+        ``z ~ N(0, I)`` from the agent's act generator (``deterministic=True``: ``z = 0``).
+        ``policy="student"`` is the one-step actor ``mu(s, z)``; ``policy="teacher"`` runs the
+        flow prior (K Euler steps), for the "flow BC only" ablation.
+        """
+        if policy not in ("student", "teacher"):
+            raise ValueError(f"policy = {policy!r} is not allowed: use 'student' or 'teacher'")
+        o, single = self._obs_tensor(obs)
+        B = o.shape[0]
+        z = (torch.zeros(B, self.chunk_dim) if deterministic
+             else torch.randn(B, self.chunk_dim, generator=self.act_generator))
+        u = (self.student(o, z).clamp(-1.0, 1.0) if policy == "student"
+             else self.teacher_actions(o, z))
+        u = u.view(B, self.config.h, self.action_dim).numpy()
+        return u[0] if single else u
+
+    @torch.no_grad()
+    def q_values(self, obs: np.ndarray, chunks: np.ndarray) -> np.ndarray:
+        """Critic values (num_critics, B) of chunks (B, h, A) at observations (B, obs_dim)."""
+        o, _ = self._obs_tensor(obs)
+        u = torch.as_tensor(np.asarray(chunks, dtype=np.float32)).reshape(o.shape[0], -1)
+        return self.critic(torch.cat([o, u], dim=-1)).numpy()
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict:
+        """Everything for an exact resume (copies): config, dims, seed, the four networks,
+        the optimizer, both noise generators, the normaliser and the update count."""
+        return copy.deepcopy({
+            "config": asdict(self.config), "obs_dim": self.obs_dim,
+            "action_dim": self.action_dim, "seed": self.seed, "num_updates": self.num_updates,
+            "obs_mean": self.obs_mean, "obs_std": self.obs_std,
+            "critic": self.critic.state_dict(), "target_critic": self.target_critic.state_dict(),
+            "teacher": self.teacher.state_dict(), "student": self.student.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "act_generator": self.act_generator.get_state(),
+            "update_generator": self.update_generator.get_state()})
+
+    def load_state_dict(self, sd: dict) -> None:
+        """Restore :meth:`state_dict` output. The network structure (obs_dim, action_dim, h,
+        hidden, num_critics, critic_layer_norm, gelu_approximate) must match this agent (``ValueError``
+        otherwise); the other hyperparameters are taken from ``sd``."""
+        saved = QCFQLConfig(**{f.name: sd["config"][f.name] for f in fields(QCFQLConfig)})
+        structural = {"obs_dim": (sd["obs_dim"], self.obs_dim),
+                      "action_dim": (sd["action_dim"], self.action_dim)}
+        for name in ("h", "hidden", "num_critics", "critic_layer_norm", "gelu_approximate"):
+            structural[name] = (getattr(saved, name), getattr(self.config, name))
+        for name, (theirs, ours) in structural.items():
+            if theirs != ours:
+                raise ValueError(f"QCFQLAgent.load_state_dict: {name} = {theirs!r} in the "
+                                 f"state dict, {ours!r} in this agent")
+        sd = copy.deepcopy(sd)
+        self.config, self.seed, self.num_updates = saved, sd["seed"], sd["num_updates"]
+        self.obs_mean, self.obs_std = sd["obs_mean"], sd["obs_std"]
+        for name in ("critic", "target_critic", "teacher", "student"):
+            getattr(self, name).load_state_dict(sd[name])
+        self.optimizer.load_state_dict(sd["optimizer"])
+        self.act_generator.set_state(sd["act_generator"])
+        self.update_generator.set_state(sd["update_generator"])
+
+    @classmethod
+    def from_state_dict(cls, sd: dict) -> "QCFQLAgent":
+        """A new agent restored from :meth:`state_dict` output."""
+        config = QCFQLConfig(**{f.name: sd["config"][f.name] for f in fields(QCFQLConfig)})
+        agent = cls(sd["obs_dim"], sd["action_dim"], config, seed=sd["seed"])
+        agent.load_state_dict(sd)
+        return agent
