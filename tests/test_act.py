@@ -1,0 +1,291 @@
+"""ACT baseline: masked loss, CVAE prior/bypass, temporal ensembling, checkpoints, learning."""
+
+import io
+import math
+from dataclasses import replace
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from baselines.act import (ACT_PROFILES, FLAT_ROBOT_DIM, ACTAgent, ACTConfig, _collect_demos,
+                           act_loss, kl_to_prior, temporal_ensemble)
+from window_bench.env import STATE_KEYS
+from window_bench.steplog import EpisodeLog
+
+torch.set_num_threads(1)
+SMOKE = ACT_PROFILES["smoke"]
+OBS_DIM = 52
+
+
+def synthetic_episode(T=23, seed=0, obs_dim=OBS_DIM):
+    rng = np.random.default_rng(seed)
+    return EpisodeLog(observations=rng.normal(size=(T + 1, obs_dim)),
+                      actions=rng.uniform(-1, 1, (T, 7)), rewards=np.zeros(T),
+                      terminated=np.arange(T) == T - 1, truncated=np.zeros(T, bool),
+                      provenance=["demo"] * T, takeover_kind=[""] * T, episode_id=seed)
+
+
+@pytest.fixture(scope="module")
+def demos():
+    """Three real scripted-installer episodes on WindowInstall-A-v0 (about 105 steps each)."""
+    return _collect_demos("WindowInstall-A-v0", [0, 1, 2])
+
+
+@pytest.fixture
+def trained():
+    """A smoke-size agent after a few updates on synthetic episodes."""
+    eps = [synthetic_episode(23, 0), synthetic_episode(17, 1)]
+    agent = ACTAgent(OBS_DIM, config=SMOKE, seed=3)
+    agent.train_offline(eps, 5)
+    return agent, eps
+
+
+# ----------------------------------------------------------------------------- loss
+def random_loss_inputs(B=4, k=10, A=7, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    pred = torch.randn(B, k, A, generator=g)
+    target = torch.randn(B, k, A, generator=g)
+    # Real lengths 10, 6, 1, 3: each row is padded past its episode end.
+    is_pad = torch.arange(k)[None, :] >= torch.tensor([10, 6, 1, 3])[:, None]
+    mu, logvar = torch.randn(B, 5, generator=g), torch.randn(B, 5, generator=g)
+    return pred, target, is_pad, mu, logvar
+
+
+def test_loss_ignores_anything_at_padded_steps():
+    pred, target, is_pad, mu, logvar = random_loss_inputs()
+    loss, l1, kl = act_loss(pred, target, is_pad, mu, logvar, 10.0)
+    pad = is_pad[..., None].expand_as(pred)
+    for junk in (1e6, float("nan"), -3.0):
+        p2 = pred.masked_fill(pad, junk)
+        t2 = target.masked_fill(pad, -junk)
+        loss2, l12, _ = act_loss(p2, t2, is_pad, mu, logvar, 10.0)
+        assert torch.equal(loss2, loss) and torch.equal(l12, l1)
+    # ... while a real step does count.
+    p3 = pred.clone()
+    p3[1, 5, 0] += 1.0  # step 5 of row 1 is its last real step
+    assert act_loss(p3, target, is_pad, mu, logvar, 10.0)[1] > l1
+    # The L1 term is the mean over real entries only.
+    real = ~pad
+    assert torch.isclose(l1, (pred - target).abs()[real].mean(), rtol=1e-6)
+    assert torch.isclose(loss, l1 + 10.0 * kl)
+
+
+def test_all_pad_tail_equals_shorter_chunk():
+    pred, target, _, mu, logvar = random_loss_inputs()
+    is_pad = torch.zeros(4, 10, dtype=torch.bool)
+    is_pad[:, 6:] = True
+    full = act_loss(pred, target, is_pad, mu, logvar, 10.0)
+    short = act_loss(pred[:, :6], target[:, :6], torch.zeros(4, 6, dtype=torch.bool),
+                     mu, logvar, 10.0)
+    for a, b in zip(full, short):
+        assert torch.allclose(a, b, rtol=1e-6, atol=0)
+
+
+def test_update_ignores_padded_targets(trained):
+    agent, _ = trained
+    twin = ACTAgent(OBS_DIM, config=SMOKE, seed=9)
+    twin.load_state_dict(agent.state_dict())
+    rng = np.random.default_rng(0)
+    is_pad = np.arange(SMOKE.chunk)[None, :] >= np.array([10, 4, 1, 7])[:, None]
+    batch = {"obs": rng.normal(size=(4, OBS_DIM)),
+             "actions": rng.uniform(-1, 1, (4, SMOKE.chunk, 7)), "is_pad": is_pad}
+    junk = dict(batch, actions=np.where(is_pad[..., None], 123.0, batch["actions"]))
+    out_a, out_b = agent.update(batch), twin.update(junk)
+    assert out_a == out_b
+    for pa, pb in zip(agent.model.parameters(), twin.model.parameters()):
+        assert torch.equal(pa, pb)
+
+
+# ----------------------------------------------------------------------------- CVAE
+def test_kl_is_zero_exactly_at_the_prior():
+    z = torch.zeros(8, 32)
+    assert kl_to_prior(z, z).item() == 0.0
+    mu = torch.zeros(2, 3)
+    mu[:, 0] = 1.0  # KL(N(1, 1) || N(0, 1)) = 1/2 per sample
+    assert kl_to_prior(mu, torch.zeros(2, 3)).item() == pytest.approx(0.5)
+    logvar = torch.full((1, 1), math.log(4.0))  # KL(N(0, 4) || N(0, 1)) = (4 - 1 - ln 4) / 2
+    assert kl_to_prior(torch.zeros(1, 1), logvar).item() == pytest.approx((3 - math.log(4)) / 2)
+
+
+def test_update_reports_zero_kl_when_the_encoder_outputs_the_prior(trained):
+    agent, eps = trained
+    with torch.no_grad():
+        agent.model.latent_proj.weight.zero_()
+        agent.model.latent_proj.bias.zero_()
+    out = agent.update(agent.sample_batch(eps, 8, np.random.default_rng(0)))
+    assert out["kl"] == 0.0
+    assert out["loss"] == pytest.approx(out["l1"])
+
+
+def test_inference_uses_z_zero_and_bypasses_the_encoder(trained):
+    agent, eps = trained
+    obs = eps[0].observations[4]
+    first = agent.act(obs)
+    assert np.array_equal(agent.act(obs), first)  # deterministic: no dropout, no sampling
+    with torch.no_grad():  # a broken CVAE encoder cannot matter at inference ...
+        for p in list(agent.model.vae_encoder.parameters()) + [agent.model.cls_embed]:
+            p.fill_(float("nan"))
+    assert np.array_equal(agent.act(obs), first)
+    # ... and z = 0 is what the policy sees: the same as feeding mu = 0, logvar -> -inf.
+    norm = agent.norm
+    obs_n = ((torch.as_tensor(obs) - norm["obs_mean"]) / norm["obs_std"])[None]
+    pred, mu, logvar = agent.model(obs_n)
+    assert mu is None and logvar is None
+    # Training-mode forward does use the encoder (now NaN): the bypass is real.
+    agent.model.train()
+    act_n = torch.zeros(1, SMOKE.chunk, 7)
+    assert torch.isnan(agent.model(obs_n, act_n, torch.zeros(1, SMOKE.chunk, dtype=bool))[0]).all()
+
+
+# ----------------------------------------------------------------------------- ensembling
+def test_temporal_ensemble_on_a_hand_built_sequence():
+    k = 4
+    # Chunk predicted at step j has row r = (10 * j + r, -(10 * j + r)).
+    chunks = [np.stack([[10 * j + r, -(10 * j + r)] for r in range(k)]).astype(float)
+              for j in range(3)]
+    # Now = step 2: chunk 0 predicts row 2 (=2), chunk 1 row 1 (=11), chunk 2 row 0 (=20).
+    w = np.exp(-0.01 * np.arange(3))
+    expected = (w * np.array([2.0, 11.0, 20.0])).sum() / w.sum()
+    got = temporal_ensemble(chunks, 0.01)
+    assert got == pytest.approx([expected, -expected])
+    assert expected < 11.0  # the oldest prediction weighs most
+    assert temporal_ensemble(chunks[:1], 0.01) == pytest.approx(chunks[0][0])
+    assert temporal_ensemble(chunks, 0.0) == pytest.approx([11.0, -11.0])  # plain mean
+    with pytest.raises(ValueError, match="at most k"):
+        temporal_ensemble(chunks * 2, 0.01)
+
+
+def test_agent_with_ensembling_averages_its_own_predictions(trained):
+    agent, eps = trained
+    te = ACTAgent(OBS_DIM, config=replace(SMOKE, temporal_ensembling=True), seed=0)
+    te.load_state_dict(agent.state_dict())  # inference-only settings may differ
+    assert te.h == 1 and agent.h == SMOKE.chunk
+    obs_seq = eps[0].observations[:14]
+    chunks = [agent.predict_chunk(o) for o in obs_seq]
+    te.reset()
+    for t, o in enumerate(obs_seq):
+        a = te.act(o)
+        assert a.shape == (1, 7) and a.dtype == np.float32
+        window = chunks[max(0, t - SMOKE.chunk + 1): t + 1]  # only chunks that cover step t
+        assert np.allclose(a[0], temporal_ensemble(window, 0.01), atol=1e-6)
+    te.reset()  # a new episode forgets the old chunks
+    assert np.allclose(te.act(obs_seq[5])[0], chunks[5][0], atol=1e-7)
+
+
+# ----------------------------------------------------------------------------- act / I/O
+def test_act_shape_range_and_errors(trained):
+    agent, eps = trained
+    a = agent.act(eps[1].observations[0])
+    assert a.shape == (SMOKE.chunk, 7) and a.dtype == np.float32
+    assert np.all(np.abs(a) <= 1.0)
+    with torch.no_grad():  # a huge output is clipped to the action box
+        agent.model.action_head.bias.fill_(1e3)
+    assert np.all(agent.act(eps[1].observations[0]) == 1.0)
+    with pytest.raises(ValueError, match=r"shape \(52,\)"):
+        agent.act(np.zeros(51))
+    with pytest.raises(RuntimeError, match="fit_normalizer"):
+        ACTAgent(OBS_DIM, config=SMOKE).act(np.zeros(OBS_DIM))
+
+
+def test_sample_batch_pads_past_the_episode_end():
+    eps = [synthetic_episode(23, 0), synthetic_episode(3, 1)]  # the second is shorter than k
+    agent = ACTAgent(OBS_DIM, config=SMOKE)
+    b = agent.sample_batch(eps, 500, np.random.default_rng(1))
+    k = SMOKE.chunk
+    assert b["obs"].shape == (500, OBS_DIM) and b["actions"].shape == (500, k, 7)
+    assert b["is_pad"].shape == (500, k) and b["is_pad"].dtype == bool
+    assert set(b["episode"]) == {0, 1}
+    for i in range(500):
+        ep, t = eps[b["episode"][i]], b["start"][i]
+        assert 0 <= t < ep.T
+        n_real = min(k, ep.T - t)
+        assert np.array_equal(b["obs"][i], ep.observations[t])
+        assert np.array_equal(b["actions"][i, :n_real], ep.actions[t:t + n_real])
+        assert np.all(b["actions"][i, n_real:] == 0)
+        assert np.array_equal(b["is_pad"][i], np.arange(k) >= n_real)
+    # Start steps are uniform over all 26 steps: the short episode gets about 3/26.
+    assert 0.06 < np.mean(b["episode"] == 1) < 0.18
+    with pytest.raises(ValueError, match="obs_dim"):
+        agent.sample_batch([synthetic_episode(5, 0, obs_dim=10)], 4, np.random.default_rng(0))
+
+
+def test_normalizer_floors_constant_dims():
+    ep = synthetic_episode(40, 0)
+    ep.actions[:, 6] = 1.0  # setting A: the vacuum is always on
+    agent = ACTAgent(OBS_DIM, config=SMOKE)
+    agent.fit_normalizer([ep])
+    assert agent.norm["act_std"][6].item() == pytest.approx(1e-2)
+    assert agent.norm["act_mean"][6].item() == pytest.approx(1.0)
+    assert np.allclose(agent.norm["obs_mean"].numpy(), ep.observations[:-1].mean(0), atol=1e-6)
+    assert np.allclose(agent.norm["act_std"][:6].numpy(), ep.actions[:, :6].std(0), atol=1e-6)
+
+
+def test_state_dict_round_trip_is_exact(trained):
+    agent, eps = trained
+    buf = io.BytesIO()
+    torch.save(agent.state_dict(), buf)
+    buf.seek(0)
+    sd = torch.load(buf, weights_only=True)
+    other = ACTAgent(OBS_DIM, config=SMOKE, seed=99)
+    other.load_state_dict(sd)
+    obs = eps[0].observations[7]
+    assert np.array_equal(other.act(obs), agent.act(obs))
+    logs_a, logs_b = agent.train_offline(eps, 3), other.train_offline(eps, 3)
+    assert logs_a == logs_b  # same batches (sampling RNG), same noise, same optimizer state
+    for pa, pb in zip(agent.model.parameters(), other.model.parameters()):
+        assert torch.equal(pa, pb)
+    # The state dict is a snapshot, not a view of live tensors.
+    assert not torch.equal(sd["model"]["action_head.weight"], agent.model.action_head.weight)
+    with pytest.raises(ValueError, match="d_model"):
+        ACTAgent(OBS_DIM, config=replace(SMOKE, d_model=64)).load_state_dict(sd)
+    # An evaluation worker rebuilds the agent from the state alone.
+    rebuilt = ACTAgent.from_state_dict(agent.state_dict())
+    assert rebuilt.config == SMOKE
+    assert np.array_equal(rebuilt.act(obs, deterministic=True), agent.act(obs))
+    with pytest.raises(ValueError, match="deterministic=False"):
+        rebuilt.act(obs, deterministic=False)
+
+
+def test_config_and_constructor_errors():
+    with pytest.raises(ValueError, match=r"n_heads = 3 must divide d_model = 32"):
+        replace(SMOKE, n_heads=3)
+    with pytest.raises(ValueError, match=r"ACTConfig.chunk = 0"):
+        ACTConfig(chunk=0)
+    with pytest.raises(ValueError, match=r"dropout = 1.0"):
+        ACTConfig(dropout=1.0)
+    with pytest.raises(ValueError, match=r"lr = -1"):
+        ACTConfig(lr=-1)
+    with pytest.raises(ValueError, match=r"robot_dim = 40 .* obs_dim = 20"):
+        ACTAgent(20, config=SMOKE)
+    with pytest.raises(ValueError, match="unknown"):
+        ACTAgent(OBS_DIM, config="huge")
+    one_token = ACTAgent(20, config=replace(SMOKE, robot_dim=0))
+    assert one_token.model.env_proj is None and one_token.model.robot_dim == 20
+
+
+def test_flat_robot_dim_matches_the_environment():
+    env = gym.make("WindowInstall-A-v0", obs_mode="state")
+    try:
+        sizes = [env.observation_space[key].shape[0] for key in STATE_KEYS]
+    finally:
+        env.close()
+    robot = [key.startswith("robot0_") for key in STATE_KEYS]
+    n_robot = sum(robot)
+    assert all(robot[:n_robot]) and not any(robot[n_robot:])  # robot keys come first
+    assert sum(sizes[:n_robot]) == FLAT_ROBOT_DIM and sum(sizes) == OBS_DIM
+
+
+# ----------------------------------------------------------------------------- learning
+def test_smoke_model_learns_from_scripted_demos(demos):
+    assert all(ep.terminated[-1] for ep in demos) and all(ep.T > 50 for ep in demos)
+    agent = ACTAgent(OBS_DIM, config=SMOKE, seed=0)
+    agent.fit_normalizer(demos)
+    before = agent.chunk_l1(demos)
+    logs = agent.train_offline(demos, 150)
+    first = np.mean([g["loss"] for g in logs[:20]])
+    last = np.mean([g["loss"] for g in logs[-20:]])
+    assert last < 0.5 * first, (first, last)
+    assert agent.chunk_l1(demos) < 0.6 * before
+    assert agent.grad_steps == 150
