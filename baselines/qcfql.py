@@ -3,9 +3,11 @@
 Read top to bottom: the config, the three networks, the losses (paper Eqs. 6-9), one
 update, acting, and the state dict. Everything runs in PyTorch on one CPU thread; TorchRL
 supplies the teacher/student MLPs (``torchrl.modules.MLP``) and the replay
-(:mod:`window_bench.replay`); the fused critic ensemble, the flow teacher, the distillation
-and the Polyak average are written here because TorchRL has no equivalent (its
-``EnsembleModule`` vmaps a module; its ``SoftUpdate`` needs a ``LossModule``).
+(:mod:`window_bench.replay`). The critic ensemble, the flow teacher, the distillation and the
+Polyak average are written here: TorchRL's MLP puts the norm before the activation (the
+reference critic has it after), its ``EnsembleModule`` vmaps one module (slower here than
+plain per-member calls, see ``benchmarks/update_speed.py``) and its ``SoftUpdate`` needs a
+``LossModule``.
 
 The agent acts in chunks: from state ``s_kh`` the student ``mu(s, z)``, ``z ~ N(0, I)``,
 outputs a whole chunk ``u_k`` of ``h`` actions (h x 7 values in [-1, 1]) that runs
@@ -243,7 +245,7 @@ BATCH_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount",
 
 
 class QCFQLAgent:
-    """QC-FQL agent: fused critic ensemble, flow teacher, one-step student.
+    """QC-FQL agent: critic ensemble, flow teacher, one-step student.
 
     Parameters
     ----------
