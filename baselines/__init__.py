@@ -1,1 +1,6 @@
-"""Learning agents for window-bench: this package will hold one module per method family from the paper — QC-FQL (Q-chunking with Flow Q-Learning), SAC, RLPD and ACT — each plugging into the shared window-bench harness through one small interface. No agent is implemented yet."""
+"""Learning agents run by the harness (``window_bench.harness``).
+
+* ``qcfql.py`` - QC-FQL: flow teacher, one-step student, chunk critic ensemble (paper Sec. 3.5).
+* ``hilserl.py`` - the HIL-SERL-style RLPD learner (step-wise, tanh-Gaussian, LayerNorm critics).
+* ``sac.py`` - Stable-Baselines3 SAC as is, with its replay buffer pre-filled with D_demo.
+"""

@@ -43,6 +43,9 @@ import torch.nn.functional as F
 from torch import nn
 from torchrl.modules import MLP
 
+#: Bound on normalised observations (in demo standard deviations).
+OBS_CLIP = 10.0
+
 # ---------------------------------------------------------------------------- config
 
 
@@ -311,8 +314,10 @@ class QCFQLAgent:
 
     # ------------------------------------------------------------------ helpers
     def normalize(self, obs: torch.Tensor) -> torch.Tensor:
-        """``(obs - mean) / std`` with the fixed normaliser."""
-        return (obs - self.obs_mean) / self.obs_std
+        """``(obs - mean) / std`` with the fixed normaliser, clipped to ``+-OBS_CLIP``: a state
+        far outside the demonstrations (a dropped panel, a violent contact) stays a large but
+        bounded input instead of thousands of standard deviations."""
+        return ((obs - self.obs_mean) / self.obs_std).clamp(-OBS_CLIP, OBS_CLIP)
 
     def _noise(self, batch: int) -> torch.Tensor:
         return torch.randn(batch, self.chunk_dim, generator=self.update_generator)

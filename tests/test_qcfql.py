@@ -14,7 +14,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from baselines.qcfql import BATCH_KEYS, QCFQLAgent, QCFQLConfig
+from baselines.qcfql import BATCH_KEYS, OBS_CLIP, QCFQLAgent, QCFQLConfig
 from window_bench.chunks import chunk_transitions
 from window_bench.steplog import EpisodeLog
 
@@ -308,8 +308,9 @@ def test_act_shapes_range_and_determinism():
 def test_observation_normaliser():
     mean, std = np.array([1.0, -2.0]), np.array([2.0, 0.0])
     agent = QCFQLAgent(OBS, A, tiny(), obs_mean=mean, obs_std=std)
-    out = agent.normalize(torch.tensor([[3.0, -2.5]]))
-    torch.testing.assert_close(out, torch.tensor([[1.0, -0.5 / 1e-3]]))
+    out = agent.normalize(torch.tensor([[3.0, -2.5], [3.0, -2.0 + 0.00390625]]))
+    # std floored at 1e-3; normalised inputs clipped to +-OBS_CLIP (-500 -> -10; 3.90625 stays)
+    torch.testing.assert_close(out, torch.tensor([[1.0, -OBS_CLIP], [1.0, 3.90625]]), rtol=1e-4, atol=1e-4)
     with pytest.raises(ValueError, match="obs_std"):
         QCFQLAgent(OBS, A, tiny(), obs_std=np.ones(3))
 

@@ -4,6 +4,10 @@
     bench calibrate --env WindowInstall-A-v0 --episodes 100    # difficulty calibration
     bench demos     --env WindowInstall-A-v0 --n 50 --out data # human-like demonstrations
     bench supervise --env WindowInstall-A-v0 --controller random --operator novice
+    bench teleop    --env WindowInstall-A-v0 --record demos    # a person at the keyboard
+    bench methods                                              # Table 1 from the registry
+    bench run --method qcfql --env WindowInstall-A-v0 --profile smoke --seed 0 --out runs/x
+    bench eval runs/x/policies/step_0000400.pt --episodes 20
 """
 
 from __future__ import annotations
@@ -34,6 +38,15 @@ def _positive(value: str) -> int:
     if v < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
     return v
+
+
+def _choice(options, what: str):
+    def parse(value: str) -> str:
+        if value not in options:
+            raise argparse.ArgumentTypeError(f"unknown {what} {value!r}; choose from "
+                                             f"{', '.join(options)}")
+        return value
+    return parse
 
 
 def _fmt_rate(s: dict) -> str:
@@ -167,8 +180,8 @@ def cmd_supervise(args) -> int:
         r = measure_supervision(args.env, args.controller, op, args.episodes, seed=args.seed,
                                 h=args.h)
         rows.append(r)
-    print(f"| operator | controller | episodes | successes | takeovers / ep | takeover min "
-          f"| takeover share | safety cues | coverage |")
+    print("| operator | controller | episodes | successes | takeovers / ep | takeover min "
+          "| takeover share | safety cues | coverage |")
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['operator']} | {r['controller']} | {r['episodes']} | {r['successes']} | "
@@ -177,6 +190,63 @@ def cmd_supervise(args) -> int:
               f"{r['coverage_interventions']} |")
     if args.out:
         atomic_write_text(args.out, json.dumps(rows, indent=1))
+    return 0
+
+
+def cmd_methods(args) -> int:
+    from .methods import PROFILES, methods_table
+
+    print(methods_table())
+    print()
+    for p in PROFILES.values():
+        print(f"profile {p.name}: budget {p.budget_steps} env steps, warm start {p.warm_steps}, "
+              f"offline {p.offline_steps} updates, UTD {p.utd}, M = {p.eval_episodes} every "
+              f"{p.checkpoint_every} steps, MLPs {'x'.join(map(str, p.hidden))}")
+    return 0
+
+
+def cmd_run(args) -> int:
+    from .harness import Run
+
+    try:
+        noise = None
+        if args.acceptance_noise is not None:
+            fp, fn, delay = args.acceptance_noise
+            noise = {"false_positive_rate": float(fp), "false_negative_rate": float(fn),
+                     "delay_steps": int(delay), "seed": args.seed}
+        run = Run(args.method, args.env, args.profile, args.seed, args.out, resume=args.resume,
+                  operator=args.operator, demos=args.demos, acceptance_noise=noise)
+    except (ValueError, FileExistsError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    r = run.train()
+    f = r["final"]
+    lo, hi = f["wilson95"]
+    t95 = f["time_to_95_sim_hours"]
+    print(f"{args.method} on {args.env} ({args.profile}, seed {args.seed}): final success "
+          f"{100 * f['success_rate']:.0f} % [{100 * lo:.0f}, {100 * hi:.0f}] over "
+          f"{f['episodes']} rollouts; time-to-95 {'-' if t95 is None else f'{t95:.2f} h'}; "
+          f"takeover {f['takeover_minutes']:.1f} min; {f['sim_hours']:.2f} simulated h, "
+          f"{f['wall_clock_s'] / 60:.1f} min wall clock")
+    print(f"wrote {Path(args.out) / 'results.json'}, checkpoints.csv, learning_curve.png")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from .harness import evaluate_policy_file
+
+    try:
+        r = evaluate_policy_file(args.checkpoint, args.episodes, env_id=args.env)
+    except FileNotFoundError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    lo, hi = r["wilson95"]
+    print(f"{r['method']} ({r['trained_env_steps']} env steps) on {r['env_id']}: "
+          f"{r['successes']}/{r['episodes']} = {100 * r['success_rate']:.0f} % "
+          f"[{100 * lo:.0f}, {100 * hi:.0f}]; Pr(S) {r['pr_S']}, Pr(I|S) {r['pr_I_given_S']}, "
+          f"Pr(T|I) {r['pr_T_given_I']}; failures {r['failure_modes']}")
+    if args.out:
+        atomic_write_text(args.out, json.dumps(r, indent=1))
     return 0
 
 
@@ -221,6 +291,34 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--h", type=_positive, default=10, help="chunk grid of the supervised policy")
     v.add_argument("--out", help="write the rows to this JSON file")
     v.set_defaults(func=cmd_supervise)
+    from .teleop import add_teleop_parser
+
+    add_teleop_parser(sub)
+    from .methods import METHODS, PROFILES
+
+    m = sub.add_parser("methods", help="print Table 1 (methods and their components)")
+    m.set_defaults(func=cmd_methods)
+    r = sub.add_parser("run", help="train one method through the matched-budget harness")
+    r.add_argument("--method", required=True, type=_choice(METHODS, "method"))
+    r.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
+    r.add_argument("--profile", type=_choice(PROFILES, "profile"), default="smoke")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--out", required=True, help="run directory")
+    r.add_argument("--resume", action="store_true", help="continue the run saved in --out")
+    r.add_argument("--operator", choices=sorted(OPERATORS), default="average",
+                   help="operator profile for demonstrations and takeovers")
+    r.add_argument("--demos", help="Minari datasets root holding the demonstrations "
+                                   "(default: collect them into OUT/demos)")
+    r.add_argument("--acceptance-noise", nargs=3, metavar=("FP", "FN", "DELAY"), default=None,
+                   help="train on a noisy acceptance sensor: false-positive rate per step, "
+                        "false-negative rate, delay in steps (evaluation keeps true acceptance)")
+    r.set_defaults(func=cmd_run)
+    e = sub.add_parser("eval", help="evaluate a saved policy (interventions off)")
+    e.add_argument("checkpoint", help="a policies/step_*.pt file of a run")
+    e.add_argument("--episodes", type=_positive, default=100)
+    e.add_argument("--env", type=_env_id, default=None, help="default: the training env")
+    e.add_argument("--out", help="write the summary to this JSON file")
+    e.set_defaults(func=cmd_eval)
     return p
 
 

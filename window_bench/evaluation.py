@@ -13,6 +13,7 @@ import math
 import os
 import platform
 import subprocess
+import sys
 import tempfile
 import time
 from collections import Counter
@@ -61,6 +62,9 @@ def provenance() -> dict:
         "gymnasium": gym.__version__, "python": platform.python_version(),
         "machine": platform.machine(), "git_commit": git_commit(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        # Learning libraries, when the caller has loaded them (importing torch is slow).
+        **{name: sys.modules[name].__version__ for name in
+           ("torch", "torchrl", "tensordict", "stable_baselines3") if name in sys.modules},
     }
 
 

@@ -1,0 +1,206 @@
+"""The matched-budget harness: metrics on hand-checkable cases, the methods registry, a smoke
+run through ``bench run`` and an exact resume after a simulated kill."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from window_bench.cli import main
+from window_bench.dataset import load_episodes
+from window_bench.demos import collect_demos
+from window_bench.evaluation import wilson_interval
+from window_bench.harness import Run, summarize_eval, time_to_threshold
+from window_bench.methods import METHODS, PROFILES, get_method, methods_table
+
+
+# ---------------------------------------------------------------- metrics
+def _wilson_by_inversion(k, n, z=1.96):
+    """Independent: the Wilson interval is {p : |k/n - p| <= z sqrt(p(1-p)/n)}; find its
+    ends by bisection on the score statistic."""
+    phat = k / n
+
+    def inside(p):
+        return abs(phat - p) <= z * math.sqrt(p * (1 - p) / n) + 1e-15
+
+    def edge(lo, hi):   # lo inside, hi outside (or vice versa); bisect the boundary
+        for _ in range(200):
+            mid = (lo + hi) / 2
+            if inside(mid) == inside(lo):
+                lo = mid
+            else:
+                hi = mid
+        return (lo + hi) / 2
+
+    lower = 0.0 if inside(0.0) else edge(phat, 0.0)
+    upper = 1.0 if inside(1.0) else edge(phat, 1.0)
+    return lower, upper
+
+
+@pytest.mark.parametrize("k,n", [(0, 10), (1, 10), (5, 10), (9, 10), (10, 10), (95, 100),
+                                 (62, 100), (0, 1), (3, 7)])
+def test_wilson_matches_an_independent_inversion(k, n):
+    lo, hi = wilson_interval(k, n)
+    ref = _wilson_by_inversion(k, n)
+    assert lo == pytest.approx(ref[0], abs=1e-9) and hi == pytest.approx(ref[1], abs=1e-9)
+
+
+def test_time_to_95_needs_three_consecutive_checkpoints():
+    steps = [0, 3000, 6000, 9000, 12000, 15000, 18000]
+    assert time_to_threshold([0.5, 0.96, 0.97, 0.90, 0.95, 0.99, 1.0], steps) == 12000
+    assert time_to_threshold([0.96, 0.97, 0.95, 0.2, 0.2, 0.2, 0.2], steps) == 0
+    assert time_to_threshold([0.96, 0.97, 0.2, 0.96, 0.97, 0.2, 0.99], steps) is None
+    assert time_to_threshold([0.949] * 7, steps) is None
+    assert time_to_threshold([0.2, 0.96], steps[:2], J=1) == 3000
+    with pytest.raises(ValueError, match="J = 0"):
+        time_to_threshold([1.0], [0], J=0)
+
+
+def test_stagewise_rates():
+    row = lambda s, i, ok, fm="": {"seed": 0, "success": ok, "cycle_time_s": 20.0,  # noqa: E731
+                                   "suction_acquired": s, "insertion_entered": i,
+                                   "failure_mode": fm}
+    rows = ([row(True, True, True)] * 6 + [row(True, True, False, "mid_depth_jamming")] * 2
+            + [row(True, False, False, "approach_failed")] + [row(False, False, False, "never_acquired")])
+    s = summarize_eval(rows)
+    assert s["success_rate"] == 0.6 and s["pr_S"] == 0.9
+    assert s["pr_I_given_S"] == pytest.approx(8 / 9) and s["pr_T_given_I"] == 0.75
+    assert s["failure_modes"] == {"never_acquired": 1, "approach_failed": 1, "mid_depth_jamming": 2}
+    assert s["cycle_time_s"] == 20.0
+
+
+# ---------------------------------------------------------------- registry
+def test_registry_has_the_table_1_rows():
+    assert set(METHODS) >= {"qcfql", "qcfql-no-intervention", "qcfql-no-warmstart",
+                            "qcfql-offline", "qcfql-offline-warmstart", "qcfql-stepwise",
+                            "qcfql-stepwise-intervention"}
+    m = METHODS
+    assert m["qcfql"].interventions and m["qcfql"].warm_start and m["qcfql"].h == 10
+    assert not m["qcfql-no-intervention"].interventions
+    assert not m["qcfql-no-warmstart"].warm_start and m["qcfql-no-warmstart"].interventions
+    assert not m["qcfql-offline"].online_updates and not m["qcfql-offline"].warm_start
+    assert m["qcfql-offline-warmstart"].warm_start and not m["qcfql-offline-warmstart"].online_updates
+    assert m["qcfql-stepwise"].h == 1 and not m["qcfql-stepwise"].interventions
+    assert m["qcfql-stepwise-intervention"].h == 1 and m["qcfql-stepwise-intervention"].interventions
+    table = methods_table()
+    assert "| Ours (complete pipeline) | `qcfql` | ✓ | ✓ | ✓ | ✓ | ✓ (10) |" in table
+    with pytest.raises(ValueError, match="unknown method 'qcfq'; choose from sac, hil-serl, .*, qcfql$"):
+        get_method("qcfq")
+    assert PROFILES["paper"].budget_steps == 108_000 and PROFILES["paper"].warm_steps == 10_000
+    assert PROFILES["paper"].utd == 2 and PROFILES["paper"].checkpoint_every == 3_000
+
+
+def test_cli_rejects_unknown_names(capsys):
+    with pytest.raises(SystemExit):
+        main(["run", "--method", "nope", "--out", "x"])
+    assert "unknown method 'nope'; choose from sac, hil-serl, qcfql-stepwise" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["run", "--method", "qcfql", "--profile", "huge", "--out", "x"])
+    assert "unknown profile 'huge'" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- runs
+@pytest.fixture(scope="module")
+def demos_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("demos")
+    collect_demos("WindowInstall-A-v0", 2, root, operator="average", seed=0, progress=False)
+    return root
+
+
+def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "--method", "qcfql", "--profile", "smoke", "--seed", "0", "--out",
+                 str(out), "--demos", str(demos_root)]) == 0
+    r = json.loads((out / "results.json").read_text())
+    assert r["schema_version"] == 1 and r["method"]["name"] == "qcfql" and r["seed"] == 0
+    assert r["profile"]["name"] == "smoke" and r["hyperparameters"]["h"] == 10
+    assert r["provenance"]["git_commit"] and "mujoco" in json.dumps(r["provenance"])
+    steps = [c["env_steps"] for c in r["checkpoints"]]
+    assert steps == [0, 200, 400]            # after Stage I, then every 200 steps
+    for c in r["checkpoints"]:
+        assert c["episodes"] == 2 and 0 <= c["wilson95"][0] <= c["success_rate"] <= c["wilson95"][1]
+    assert r["final"]["env_steps"] == 400
+    assert r["final"]["grad_steps"] == 20 + round(0.05 * 300)   # offline + UTD x online steps
+    assert (out / "checkpoints.csv").read_text().count("\n") == 4
+    assert (out / "learning_curve.png").stat().st_size > 1000
+    assert list((out / "tb").iterdir())
+    # Every training episode is accounted for (takeover steps only after the warm start).
+    assert sum(e["steps"] for e in r["train_episodes"]) <= 400
+    capsys.readouterr()
+    assert main(["eval", str(out / "policies" / "step_0000400.pt"), "--episodes", "2"]) == 0
+    assert "qcfql (400 env steps) on WindowInstall-A-v0: " in capsys.readouterr().out
+    # The run directory is not silently reused.
+    with pytest.raises(FileExistsError, match="--resume"):
+        Run("qcfql", "WindowInstall-A-v0", "smoke", 0, out)
+
+
+def test_resume_after_a_kill_reproduces_the_run(tmp_path, demos_root):
+    def run(out, kill_at=None):
+        r = Run("qcfql-no-intervention", "WindowInstall-A-v0", "smoke", 3, out,
+                demos=demos_root, progress=False, save_every_s=0.0)
+        r._stop_after_env_steps = kill_at
+        return r
+
+    whole = run(tmp_path / "whole").train()
+    killed = run(tmp_path / "killed", kill_at=250)
+    with pytest.raises(KeyboardInterrupt):
+        killed.train()
+    resumed = Run("qcfql-no-intervention", "WindowInstall-A-v0", "smoke", 3, tmp_path / "killed",
+                  resume=True, demos=demos_root, progress=False, save_every_s=0.0).train()
+    strip = lambda cps: [{k: v for k, v in c.items() if k != "wall_clock_s"} for c in cps]  # noqa: E731
+    assert strip(resumed["checkpoints"]) == strip(whole["checkpoints"])
+    assert resumed["train_episodes"] == whole["train_episodes"]
+    a = torch.load(tmp_path / "whole" / "policies" / "step_0000400.pt", weights_only=False)
+    b = torch.load(tmp_path / "killed" / "policies" / "step_0000400.pt", weights_only=False)
+    for key in ("critic", "student", "teacher"):
+        for name, t in a["agent"][key].items():
+            assert torch.equal(t, b["agent"][key][name]), (key, name)
+    with pytest.raises(ValueError, match="seed = 3"):
+        Run("qcfql-no-intervention", "WindowInstall-A-v0", "smoke", 4, tmp_path / "killed",
+            resume=True, demos=demos_root).train()
+
+
+def test_offline_only_method_never_touches_the_env(tmp_path, demos_root):
+    r = Run("qcfql-offline", "WindowInstall-A-v0", "smoke", 0, tmp_path / "off",
+            demos=demos_root, progress=False).train()
+    assert [c["env_steps"] for c in r["checkpoints"]] == [0]
+    assert r["final"]["env_steps"] == 0 and r["train_episodes"] == []
+    assert r["final"]["time_to_95_env_steps"] is None
+    assert np.isfinite(r["final"]["success_rate"])
+
+
+def test_acceptance_noise_is_validated(tmp_path, capsys):
+    with pytest.raises(ValueError, match="false_positive_rate"):
+        Run("qcfql", "WindowInstall-A-v0", "smoke", 0, tmp_path / "n",
+            acceptance_noise={"false_positive_rate": 1.5})
+    assert main(["run", "--method", "qcfql", "--out", str(tmp_path / "m"),
+                 "--acceptance-noise", "0.01", "x", "3"]) == 2
+    assert "error:" in capsys.readouterr().err
+
+
+def test_methods_snippet_in_the_docs_is_current():
+    from pathlib import Path
+
+    snippet = Path(__file__).resolve().parents[1] / "docs" / "snippets" / "methods_table.md"
+    assert snippet.read_text().strip() == methods_table().strip(), (
+        "regenerate it: python -c 'from window_bench.methods import methods_table; "
+        "print(methods_table())' > docs/snippets/methods_table.md")
+
+
+@pytest.mark.parametrize("method", ["hil-serl", "sac"])
+def test_baselines_run_through_the_harness(tmp_path, demos_root, method):
+    """Each external baseline trains for a few steps in the smoke profile and evaluates at
+    the same checkpoints as QC-FQL."""
+    r = Run(method, "WindowInstall-A-v0", "smoke", 0, tmp_path / method, demos=demos_root,
+            progress=False).train()
+    assert [c["env_steps"] for c in r["checkpoints"]] == [0, 200, 400]
+    assert r["final"]["env_steps"] == 400 and r["final"]["grad_steps"] > 0
+    assert r["method"]["h"] == 1 and r["hyperparameters"]
+    assert sum(e["steps"] for e in r["train_episodes"]) <= 400
+    if method == "sac":
+        demos = load_episodes("window-bench/demos-a-average-v0", data_path=demos_root)
+        assert r["hyperparameters"]["demo_transitions"] == sum(ep.T for ep in demos)

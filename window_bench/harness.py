@@ -1,0 +1,688 @@
+"""The matched-budget harness: ``bench run --method NAME`` (paper Sections 3.4-3.6, 4.2).
+
+One run = one method on one env with one seed and one profile (:mod:`window_bench.methods`):
+
+* **Stage I - offline pretraining** on D_demo (``profile.offline_steps`` gradient steps);
+* **Stage II - warm start**: the pretrained policy collects ``profile.warm_steps``
+  transitions with no updates (and no takeovers);
+* **Stage III - online fine-tuning**: ``profile.utd`` gradient steps per environment step on
+  batches drawn 1:1 from D_demo and D_online, takeovers by the installer supervisor when the
+  method has interventions, until ``profile.budget_steps`` environment steps (warm start
+  included) have been used.
+
+Every ``profile.checkpoint_every`` environment steps (and once after Stage I) the policy is
+frozen and evaluated with interventions off over M seeded rollouts (the same seeds at every
+checkpoint and for every method), in parallel worker processes: success with a 95 % Wilson
+interval, cycle time over successes, stage-wise Pr(S), Pr(I|S), Pr(T|I) and the failure-mode
+histogram. Training metrics: running success and intervention rate over the last 20 training
+episodes, cumulative takeover minutes, and time-to-95 (the first checkpoint where raw success
+>= 95 % holds for J = 3 consecutive checkpoints). Progress is reported in simulated hours
+(environment steps / 36,000) and in compute wall-clock.
+
+Outputs in ``--out``: ``results.json`` (schema-versioned: method, env, profile, seed,
+hyperparameters, versions, git commit, every checkpoint), ``checkpoints.csv``,
+``learning_curve.png``, TensorBoard scalars under ``tb/``, the frozen policy of every
+checkpoint under ``policies/`` (``bench eval`` reads them), and ``state.pt``, the atomic
+training state (agent, optimizer, replay, RNGs, counters) written at episode boundaries, from
+which ``--resume`` continues a killed run exactly where the state was saved.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import multiprocessing as mp
+import os
+import time
+from collections import Counter
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from .evaluation import atomic_write_text, provenance, wilson_interval
+from .methods import Method, Profile, get_method, get_profile
+from .rollout import Rollout
+from .steplog import STEP_DT
+from .task import FAILURE_MODES
+
+RESULTS_SCHEMA = 1
+STEPS_PER_HOUR = 36_000            # 10 Hz
+EVAL_SEED0 = 100_000               # evaluation episodes use seeds EVAL_SEED0 + i
+TIME_TO_95_J = 3
+RATE_WINDOW = 20
+
+
+# ---------------------------------------------------------------------------- agents
+def make_agent(method: Method, profile: Profile, obs_dim: int, seed: int,
+               obs_mean=None, obs_std=None):
+    """A fresh learner for ``method`` with the profile's sizes."""
+    if method.agent == "qcfql":
+        from baselines.qcfql import QCFQLAgent, QCFQLConfig
+
+        cfg = QCFQLConfig(h=method.h, hidden=tuple(profile.hidden), batch_size=profile.batch_size)
+        return QCFQLAgent(obs_dim, 7, cfg, seed=seed, obs_mean=obs_mean, obs_std=obs_std)
+    if method.agent == "hilserl":
+        from baselines.hilserl import HILSERLAgent, HILSERLConfig
+
+        cfg = HILSERLConfig(hidden=tuple(profile.hidden), batch_size=profile.batch_size)
+        return HILSERLAgent(obs_dim, 7, cfg, seed=seed, obs_mean=obs_mean, obs_std=obs_std)
+    raise ValueError(f"method {method.name!r}: agent {method.agent!r} is not run by this harness")
+
+
+def agent_from_state(kind: str, state: dict):
+    if kind == "qcfql":
+        from baselines.qcfql import QCFQLAgent
+
+        return QCFQLAgent.from_state_dict(state)
+    if kind == "hilserl":
+        from baselines.hilserl import HILSERLAgent
+
+        return HILSERLAgent.from_state_dict(state)
+    if kind == "sac":
+        from baselines.sac import SACPolicy
+
+        return SACPolicy.from_state_dict(state)
+    raise ValueError(f"unknown agent kind {kind!r}")
+
+
+def agent_hyperparameters(agent) -> dict:
+    cfg = getattr(agent, "config", None)
+    if cfg is None:
+        return {}
+    import dataclasses
+
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(cfg).items()}
+
+
+def obs_normalizer(obs: np.ndarray, floor: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std of the demonstrations' observations, for the agents' fixed z-scoring.
+
+    A feature constant in the demonstrations (the vacuum flag in A, which never drops in a
+    good demonstration) keeps scale 1: it is only centred, because flooring its std would
+    blow a value seen only online (the flag at 0) up to ``1 / floor`` units. Other stds are
+    floored at ``floor``; the agents also clip normalised inputs (QC-FQL: +-10).
+    """
+    mean, std = obs.mean(0), obs.std(0)
+    std = np.where(std < 1e-6, 1.0, np.maximum(std, floor))
+    return mean.astype(np.float32), std.astype(np.float32)
+
+
+class _EpisodeRecorder(gym.Wrapper):
+    """Appends ``{steps, success, takeover_steps, takeovers}`` to ``rows`` at each episode
+    end (for learners that own their loop, like SB3)."""
+
+    def __init__(self, env):
+        super().__init__(env)
+        self.rows: list[dict] = []
+        self._steps = 0
+
+    def reset(self, **kwargs):
+        self._steps = 0
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._steps += 1
+        if terminated or truncated:
+            self.rows.append({"steps": self._steps, "success": bool(info.get("is_success", terminated)),
+                              "takeover_steps": 0, "takeovers": 0})
+        return obs, reward, terminated, truncated, info
+
+
+class AgentPolicy:
+    """Adapts an agent (``act(obs, deterministic)`` -> (h, 7)) to the rollout's policy API."""
+
+    def __init__(self, agent, deterministic: bool):
+        self.agent, self.deterministic = agent, deterministic
+        self.h = int(getattr(agent, "h", None) or agent.config.h)
+
+    def act(self, obs):
+        return self.agent.act(obs, deterministic=self.deterministic)
+
+
+# ---------------------------------------------------------------------------- evaluation
+def _eval_worker(task) -> list[dict]:
+    kind, state, env_id, seeds, max_steps = task
+    torch.set_num_threads(1)
+    import window_bench  # noqa: F401  (registers the envs in a spawned worker)
+
+    agent = agent_from_state(kind, state)
+    env = gym.make(env_id, obs_mode="flat", max_episode_steps=max_steps)
+    rollout = Rollout(env, AgentPolicy(agent, deterministic=True), env_id=env_id)
+    rows = []
+    for seed in seeds:
+        log = rollout.run(seed=seed, episode_id=seed)
+        info = rollout.info
+        rows.append({"seed": int(seed), "success": bool(log.terminated[-1]),
+                     "cycle_time_s": round(log.T * STEP_DT, 1),
+                     "suction_acquired": bool(info["suction_acquired"]),
+                     "insertion_entered": bool(info["insertion_entered"]),
+                     "failure_mode": "" if log.terminated[-1] else (info["failure_mode"] or "timeout")})
+    env.close()
+    return rows
+
+
+def summarize_eval(rows: list[dict]) -> dict:
+    """Checkpoint metrics from evaluation rows: success, Wilson, cycle time, stage-wise."""
+    n = len(rows)
+    k = sum(r["success"] for r in rows)
+    s = sum(r["suction_acquired"] for r in rows)
+    i = sum(r["insertion_entered"] and r["suction_acquired"] for r in rows)
+    t = sum(r["success"] and r["insertion_entered"] for r in rows)
+    lo, hi = wilson_interval(k, n)
+    cycles = [r["cycle_time_s"] for r in rows if r["success"]]
+    modes = Counter(r["failure_mode"] for r in rows if not r["success"])
+    ratio = lambda a, b: (a / b) if b else None  # noqa: E731
+    return {"episodes": n, "successes": k, "success_rate": k / n, "wilson95": [lo, hi],
+            "cycle_time_s": float(np.mean(cycles)) if cycles else None,
+            "pr_S": ratio(s, n), "pr_I_given_S": ratio(i, s), "pr_T_given_I": ratio(t, i),
+            "failure_modes": {m: modes[m] for m in FAILURE_MODES if modes.get(m)}}
+
+
+def time_to_threshold(rates: list[float], steps: list[int], threshold: float = 0.95,
+                      J: int = TIME_TO_95_J) -> int | None:
+    """First checkpoint step from which raw success >= threshold for J consecutive
+    checkpoints; None if never."""
+    if J < 1:
+        raise ValueError(f"J = {J} must be >= 1")
+    run = 0
+    for idx, r in enumerate(rates):
+        run = run + 1 if r >= threshold else 0
+        if run >= J:
+            return steps[idx - J + 1]
+    return None
+
+
+class Evaluator:
+    """Parallel frozen-policy evaluation in spawned worker processes."""
+
+    def __init__(self, env_id: str, episodes: int, workers: int, max_steps: int):
+        self.env_id, self.episodes, self.max_steps = env_id, episodes, max_steps
+        self.workers = max(1, min(workers, episodes))
+        self.pool = None
+
+    def __call__(self, kind: str, state: dict) -> list[dict]:
+        seeds = list(range(EVAL_SEED0, EVAL_SEED0 + self.episodes))
+        groups = [seeds[j::self.workers] for j in range(self.workers)]
+        tasks = [(kind, state, self.env_id, g, self.max_steps) for g in groups if g]
+        if self.workers == 1:
+            out = [_eval_worker(t) for t in tasks]
+        else:
+            if self.pool is None:
+                self.pool = mp.get_context("spawn").Pool(self.workers)
+            out = self.pool.map(_eval_worker, tasks)
+        return sorted((r for rows in out for r in rows), key=lambda r: r["seed"])
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.close()
+            self.pool.join()
+            self.pool = None
+
+
+def _replay_from_state(sd: dict):
+    from .replay import ChunkReplay
+
+    rb = ChunkReplay(sd["capacity"], sd["h"], sd["gamma"], seed=sd["seed"])
+    rb.load_state_dict(sd)
+    return rb
+
+
+# ---------------------------------------------------------------------------- files
+def _atomic_torch_save(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        torch.save(obj, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _write_csv(path: Path, checkpoints: list[dict]) -> None:
+    cols = ["env_steps", "sim_hours", "wall_clock_s", "episodes", "successes", "success_rate",
+            "wilson_lo", "wilson_hi", "cycle_time_s", "pr_S", "pr_I_given_S", "pr_T_given_I",
+            "takeover_minutes", "train_success_rate", "train_intervention_rate",
+            "failure_modes"]
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(cols)
+    for c in checkpoints:
+        row = {**c, "wilson_lo": c["wilson95"][0], "wilson_hi": c["wilson95"][1],
+               "failure_modes": json.dumps(c["failure_modes"])}
+        w.writerow(["" if row.get(k) is None else row.get(k) for k in cols])
+    atomic_write_text(path, buf.getvalue())
+
+
+def plot_learning_curve(results: dict, path: Path) -> None:
+    """Success with its Wilson band and the training intervention rate vs simulated hours
+    (the layout of the paper's Figs. 10 and 11)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cps = results["checkpoints"]
+    x = [c["sim_hours"] for c in cps]
+    y = [100 * c["success_rate"] for c in cps]
+    lo = [100 * c["wilson95"][0] for c in cps]
+    hi = [100 * c["wilson95"][1] for c in cps]
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(6.4, 5.6), sharex=True)
+    a1.fill_between(x, lo, hi, alpha=0.25, label="95 % Wilson")
+    a1.plot(x, y, "o-", label=f"{results['method']['label']}")
+    a1.axhline(95, ls=":", c="gray")
+    a1.set_ylabel("success (%)")
+    a1.set_ylim(-2, 102)
+    a1.legend(loc="lower right")
+    a1.set_title(f"{results['method']['name']} on {results['env_id']} "
+                 f"({results['profile']['name']} profile, seed {results['seed']})")
+    ir = [100 * (c["train_intervention_rate"] or 0) for c in cps]
+    a2.plot(x, ir, "s-", c="C3")
+    a2.set_ylabel("intervention rate,\nlast 20 episodes (%)")
+    a2.set_xlabel("online interaction (simulated hours, warm start included)")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(buf.getvalue())
+    os.replace(tmp, path)
+
+
+# ---------------------------------------------------------------------------- the run
+class Run:
+    """One training run; :meth:`train` executes (or resumes) it to the end."""
+
+    def __init__(self, method: str, env_id: str, profile: str, seed: int, out: str | os.PathLike,
+                 *, resume: bool = False, operator: str = "average",
+                 demos: str | os.PathLike | None = None, progress: bool = True,
+                 save_every_s: float = 60.0, acceptance_noise: dict | None = None):
+        self.method = get_method(method)
+        self.profile = get_profile(profile)
+        import window_bench
+
+        if env_id not in window_bench.ENV_IDS:
+            raise ValueError(f"unknown env {env_id!r}; registered: {', '.join(window_bench.ENV_IDS)}")
+        from .operators import get_operator
+
+        get_operator(operator)
+        self.env_id, self.seed, self.operator = env_id, int(seed), operator
+        if acceptance_noise is not None:
+            from .wrappers import AcceptanceSensor
+
+            AcceptanceSensor(**acceptance_noise)     # validates the rates and the delay
+        self.acceptance_noise = acceptance_noise
+        self.out = Path(out)
+        self.demos_root = Path(demos) if demos is not None else self.out / "demos"
+        self.progress, self.save_every_s = progress, float(save_every_s)
+        self.state_path = self.out / "state.pt"
+        if self.state_path.exists() and not resume:
+            raise FileExistsError(f"{self.out} already holds a run (state.pt); pass --resume to "
+                                  "continue it or choose another --out")
+        if resume and not self.state_path.exists() and (self.out / "results.json").exists():
+            raise FileExistsError(f"{self.out} holds a finished run (results.json, no state)")
+        self.out.mkdir(parents=True, exist_ok=True)
+        self._stop_after_env_steps = None   # tests: simulate a kill (no state written)
+
+    # ------------------------------------------------------------------ setup
+    def _demos(self):
+        from .demos import collect_demos, load_demos
+
+        try:
+            eps = load_demos(self.demos_root, self.env_id, self.operator)
+        except ValueError:
+            collect_demos(self.env_id, self.profile.n_demos, self.demos_root,
+                          operator=self.operator, seed=1_000_000 + self.seed,
+                          progress=self.progress)
+            eps = load_demos(self.demos_root, self.env_id, self.operator)
+        if len(eps) < self.profile.n_demos:
+            raise ValueError(f"{self.demos_root}: {len(eps)} demonstrations, the profile needs "
+                             f"{self.profile.n_demos}")
+        return eps[: self.profile.n_demos]
+
+    def _fresh(self) -> dict:
+        from .replay import ChunkReplay
+
+        torch.manual_seed(self.seed)
+        demos = self._demos()
+        obs = np.concatenate([ep.observations for ep in demos])
+        h, p = self.method.h, self.profile
+        agent = make_agent(self.method, p, obs.shape[1], self.seed, *obs_normalizer(obs))
+        gamma = agent.config.gamma
+        demo_chunks = sum(-(-ep.T // h) for ep in demos)
+        if self.method.agent == "hilserl":   # takeover transitions are added to D_demo too
+            demo_chunks += p.budget_steps
+        demo_rb = ChunkReplay(demo_chunks, h, gamma, seed=self.seed)
+        for ep in demos:
+            demo_rb.add_episode(ep)
+        online_rb = ChunkReplay(p.budget_steps // h + 2 * p.max_episode_steps, h, gamma,
+                                seed=self.seed + 1)
+        self.agent, self.demo_rb, self.online_rb = agent, demo_rb, online_rb
+        return {"stage": "offline", "offline_done": 0, "env_steps": 0, "episodes": [],
+                "checkpoints": [], "grad_steps": 0, "update_credit": 0.0, "wall_clock_s": 0.0,
+                "next_checkpoint": 0, "obs_dim": int(obs.shape[1])}
+
+    def _save(self) -> None:
+        _atomic_torch_save({"counters": self.c, "agent": self.agent.state_dict(),
+                            "demo_rb": self.demo_rb.state_dict(),
+                            "online_rb": self.online_rb.state_dict(),
+                            "torch_rng": torch.get_rng_state(),
+                            "method": self.method.name, "env_id": self.env_id,
+                            "profile": self.profile.name, "seed": self.seed,
+                            "operator": self.operator}, self.state_path)
+        self._last_save = time.perf_counter()
+
+    def _load(self) -> None:
+        st = torch.load(self.state_path, weights_only=False)
+        for key, mine in (("method", self.method.name), ("env_id", self.env_id),
+                          ("profile", self.profile.name), ("seed", self.seed),
+                          ("operator", self.operator)):
+            if st[key] != mine:
+                raise ValueError(f"--resume: the saved run has {key} = {st[key]!r}, this "
+                                 f"command asks for {mine!r}")
+        self.c = st["counters"]
+        self.agent = agent_from_state(self.method.agent, st["agent"])
+        self.demo_rb, self.online_rb = (_replay_from_state(st[k]) for k in ("demo_rb", "online_rb"))
+        torch.set_rng_state(st["torch_rng"])
+
+    # ------------------------------------------------------------------ stages
+    def _elapsed(self) -> float:
+        return self.c["wall_clock_s"] + (time.perf_counter() - self._t0)
+
+    def _offline(self, bar) -> None:
+        p = self.profile
+        while self.c["offline_done"] < p.offline_steps:
+            n = self._update(lambda: self.demo_rb.sample(p.batch_size))
+            self.c["offline_done"] += n
+            self.c["grad_steps"] += n
+            bar.update(n)
+            if time.perf_counter() - self._last_save > self.save_every_s:
+                self._checkpoint_state()
+        self.c["stage"] = "evaluate0"
+
+    def _batch(self):
+        from .replay import mixed_batch
+
+        return mixed_batch(self.demo_rb, self.online_rb, self.profile.batch_size, 0.5)
+
+    def _update(self, sample) -> int:
+        """One learner call on batches from ``sample()``; returns its gradient steps. QC-FQL
+        takes one batch per step; HIL-SERL draws a fresh batch per critic step."""
+        if self.method.agent == "hilserl":
+            self.agent.update(sample)
+            return self.agent.config.critic_actor_ratio
+        self.agent.update(sample())
+        return 1
+
+    def _checkpoint_state(self) -> None:
+        self.c["wall_clock_s"] = self._elapsed()
+        self._t0 = time.perf_counter()
+        self._save()
+
+    def _evaluate(self, evaluator, tb, state: dict | None = None) -> None:
+        step = self.c["env_steps"]
+        state = self.agent.state_dict() if state is None else state
+        rows = evaluator(self.method.agent, state)
+        s = summarize_eval(rows)
+        eps = self.c["episodes"]
+        recent = eps[-RATE_WINDOW:]
+        take_steps = sum(e["takeover_steps"] for e in recent)
+        cp = {"env_steps": step, "sim_hours": step / STEPS_PER_HOUR,
+              "wall_clock_s": round(self._elapsed(), 1), **s,
+              "takeover_minutes": sum(e["takeover_steps"] for e in eps) * STEP_DT / 60,
+              "train_episodes": len(eps),
+              "train_success_rate": (np.mean([e["success"] for e in recent]) if recent else None),
+              "train_intervention_rate": (take_steps / sum(e["steps"] for e in recent)
+                                          if recent else None),
+              "grad_steps": self.c["grad_steps"]}
+        cp = {k: (float(v) if isinstance(v, np.floating) else v) for k, v in cp.items()}
+        self.c["checkpoints"].append(cp)
+        pol_dir = self.out / "policies"
+        pol_dir.mkdir(exist_ok=True)
+        _atomic_torch_save({"agent_kind": self.method.agent, "agent": state,
+                            "method": self.method.name, "env_id": self.env_id, "env_steps": step,
+                            "profile": self.profile.name, "seed": self.seed},
+                           pol_dir / f"step_{step:07d}.pt")
+        if tb is not None:
+            for key in ("success_rate", "takeover_minutes", "train_intervention_rate",
+                        "train_success_rate", "wall_clock_s"):
+                if cp.get(key) is not None:
+                    tb.add_scalar(f"eval/{key}" if key == "success_rate" else f"train/{key}",
+                                  cp[key], step)
+            tb.flush()
+
+    def _train_episode_row(self, log) -> dict:
+        from .effort import takeover_count
+
+        return {"steps": log.T, "success": bool(log.terminated[-1]),
+                "takeover_steps": int((log.provenance == "takeover").sum()),
+                "takeovers": takeover_count(log)}
+
+    # ------------------------------------------------------------------ main loop
+    def train(self) -> dict:
+        from tqdm import tqdm
+
+        from .supervisor import InstallerSupervisor
+
+        torch.set_num_threads(1)
+        self._t0 = self._last_save = time.perf_counter()
+        if self.method.agent == "sac":
+            return self._train_sac()
+        if self.state_path.exists():
+            self._load()
+        else:
+            self.c = self._fresh()
+            self._save()
+        m, p = self.method, self.profile
+        tb = self._tensorboard()
+        evaluator = Evaluator(self.env_id, p.eval_episodes, p.eval_workers, p.max_episode_steps)
+        try:
+            if self.c["stage"] == "offline":
+                if m.offline_pretrain:
+                    with tqdm(total=p.offline_steps, initial=self.c["offline_done"],
+                              desc="Stage I  offline", unit="upd", disable=not self.progress) as bar:
+                        self._offline(bar)
+                else:
+                    self.c["stage"] = "evaluate0"
+                self._checkpoint_state()
+            if self.c["stage"] == "evaluate0":
+                self._evaluate(evaluator, tb)
+                self.c["next_checkpoint"] = p.checkpoint_every
+                self.c["stage"] = "warm" if m.warm_start else "online"
+                if not m.warm_start and not m.online_updates:
+                    self.c["stage"] = "done"
+                self._checkpoint_state()
+            if self.c["stage"] in ("warm", "online"):
+                self._interact(evaluator, tb, InstallerSupervisor)
+        finally:
+            evaluator.close()
+            if tb is not None:
+                tb.close()
+        return self._finish()
+
+    def _interact(self, evaluator, tb, supervisor_cls) -> None:
+        from tqdm import tqdm
+
+        m, p = self.method, self.profile
+        from .wrappers import make_training_env
+
+        # Training may see a noisy acceptance sensor; evaluation always uses true acceptance.
+        env = make_training_env(self.env_id, self.acceptance_noise, obs_mode="flat",
+                                max_episode_steps=p.max_episode_steps)
+        policy = AgentPolicy(self.agent, deterministic=False)
+        budget = p.warm_steps if not m.online_updates else p.budget_steps
+        sup = supervisor_cls(self.operator) if m.interventions else None
+        with tqdm(total=budget, initial=self.c["env_steps"], desc="Stage II/III env", unit="step",
+                  disable=not self.progress) as bar:
+            while self.c["env_steps"] < budget:
+                warm = m.warm_start and self.c["env_steps"] < p.warm_steps
+                self.c["stage"] = "warm" if warm else "online"
+                rollout = Rollout(env, policy, supervisor=None if warm else sup,
+                                  env_id=self.env_id, operator=self.operator if sup else "")
+                ep_id = len(self.c["episodes"])
+                rollout.reset(seed=self.seed * 1_000_003 + ep_id, episode_id=ep_id)
+                while not rollout.done:
+                    rollout.step()
+                    self.c["env_steps"] += 1
+                    bar.update(1)
+                    if (self._stop_after_env_steps is not None
+                            and self.c["env_steps"] >= self._stop_after_env_steps):
+                        raise KeyboardInterrupt("simulated kill")
+                    if not warm and m.online_updates:
+                        self.c["update_credit"] += p.utd
+                        while self.c["update_credit"] >= 1.0:
+                            n = self._update(self._batch)
+                            self.c["update_credit"] -= n
+                            self.c["grad_steps"] += n
+                    if self.c["env_steps"] >= self.c["next_checkpoint"]:
+                        self._evaluate(evaluator, tb)
+                        self.c["next_checkpoint"] += p.checkpoint_every
+                        last = self.c["checkpoints"][-1]
+                        bar.set_postfix(success=f"{100 * last['success_rate']:.0f}%",
+                                        takeover_min=f"{last['takeover_minutes']:.1f}")
+                    if self.c["env_steps"] >= budget:
+                        break
+                if rollout.done:
+                    log = rollout.episode_log()
+                    self.online_rb.add_episode(log)
+                    if m.agent == "hilserl":   # as HIL-SERL: interventions also go to D_demo
+                        from baselines.hilserl import takeover_segments
+
+                        for seg in takeover_segments(log):
+                            self.demo_rb.add_episode(seg)
+                    row = self._train_episode_row(log)
+                    row["success"] = bool(rollout.info.get("is_success", row["success"]))
+                    self.c["episodes"].append(row)
+                if time.perf_counter() - self._last_save > self.save_every_s or not rollout.done:
+                    self._checkpoint_state()
+        env.close()
+        if self.c["checkpoints"][-1]["env_steps"] != self.c["env_steps"]:
+            self._evaluate(evaluator, tb)
+        self.c["stage"] = "done"
+        self._checkpoint_state()
+
+    # ------------------------------------------------------------------ SB3 SAC
+    def _train_sac(self) -> dict:
+        """SAC as is: SB3 owns the loop; the harness evaluates at its checkpoints."""
+        from baselines.sac import SACPolicy, load_sac, make_sac, save_sac, train_sac
+
+        from .wrappers import make_training_env
+
+        m, p = self.method, self.profile
+        env = _EpisodeRecorder(make_training_env(self.env_id, self.acceptance_noise,
+                                                 obs_mode="flat",
+                                                 max_episode_steps=p.max_episode_steps))
+        sac_dir = self.out / "sac"
+        if self.state_path.exists():
+            st = torch.load(self.state_path, weights_only=False)
+            if (st["method"], st["seed"], st["env_id"]) != (m.name, self.seed, self.env_id):
+                raise ValueError(f"--resume: {self.out} holds {st['method']} seed {st['seed']} "
+                                 f"on {st['env_id']}")
+            self.c = st["counters"]
+            model = load_sac(sac_dir, env) if self.c["env_steps"] else None
+        else:
+            self.c = {"stage": "online", "env_steps": 0, "episodes": [], "checkpoints": [],
+                      "grad_steps": 0, "wall_clock_s": 0.0}
+            model = None
+        if model is None:
+            model = make_sac(env, self._demos(), self.seed, p.budget_steps)
+        env.rows = self.c["episodes"]
+        self.agent = SACPolicy(model)
+        evaluator = Evaluator(self.env_id, p.eval_episodes, p.eval_workers, p.max_episode_steps)
+        tb = self._tensorboard()
+
+        def save_counters():
+            self.c["wall_clock_s"] = self._elapsed()
+            self._t0 = time.perf_counter()
+            _atomic_torch_save({"counters": self.c, "method": m.name, "env_id": self.env_id,
+                                "profile": p.name, "seed": self.seed,
+                                "operator": self.operator}, self.state_path)
+
+        def on_checkpoint(k: int) -> None:
+            self.c["env_steps"] = k
+            self.c["grad_steps"] = int(model._n_updates)
+            self._evaluate(evaluator, tb, state=SACPolicy(model).state_dict())
+            save_sac(model, sac_dir)
+            save_counters()
+
+        try:
+            if not self.c["checkpoints"]:
+                self._evaluate(evaluator, tb, state=SACPolicy(model).state_dict())
+                save_counters()
+            elif self.c["checkpoints"][-1]["env_steps"] != model.num_timesteps:
+                on_checkpoint(int(model.num_timesteps))   # killed between the two saves
+            train_sac(model, p.budget_steps, p.checkpoint_every, on_checkpoint,
+                      progress=self.progress)
+            if self.c["checkpoints"][-1]["env_steps"] != model.num_timesteps:
+                on_checkpoint(int(model.num_timesteps))
+            self.c["stage"] = "done"
+            save_counters()
+        finally:
+            evaluator.close()
+            if tb is not None:
+                tb.close()
+        from baselines.sac import SB3_SAC_DEFAULTS
+
+        self.hyperparameters = {**SB3_SAC_DEFAULTS, "buffer_size": int(model.buffer_size),
+                                "seed": self.seed,
+                                "demo_transitions": int(getattr(model, "n_demo_transitions", 0))}
+        return self._finish()
+
+    def _tensorboard(self):
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:   # tensorboard not installed: scalars are still in the CSV/JSON
+            return None
+        return SummaryWriter(str(self.out / "tb"))
+
+    # ------------------------------------------------------------------ results
+    def _finish(self) -> dict:
+        cps = self.c["checkpoints"]
+        rates = [c["success_rate"] for c in cps]
+        steps = [c["env_steps"] for c in cps]
+        t95 = time_to_threshold(rates, steps) if self.method.online_updates else None
+        final = cps[-1]
+        results = {
+            "schema_version": RESULTS_SCHEMA, "method": self.method.as_dict(),
+            "env_id": self.env_id, "profile": self.profile.as_dict(), "seed": self.seed,
+            "operator": self.operator, "acceptance_noise": self.acceptance_noise,
+            "hyperparameters": getattr(self, "hyperparameters", None)
+            or agent_hyperparameters(self.agent),
+            "final": {"success_rate": final["success_rate"], "wilson95": final["wilson95"],
+                      "episodes": final["episodes"], "cycle_time_s": final["cycle_time_s"],
+                      "time_to_95_env_steps": t95,
+                      "time_to_95_sim_hours": None if t95 is None else t95 / STEPS_PER_HOUR,
+                      "takeover_minutes": final["takeover_minutes"],
+                      "env_steps": self.c["env_steps"],
+                      "sim_hours": self.c["env_steps"] / STEPS_PER_HOUR,
+                      "grad_steps": self.c["grad_steps"],
+                      "wall_clock_s": round(self.c["wall_clock_s"], 1)},
+            "checkpoints": cps,
+            "train_episodes": self.c["episodes"],
+            "eval_seeds": [EVAL_SEED0, EVAL_SEED0 + self.profile.eval_episodes - 1],
+            "provenance": provenance(),
+        }
+        atomic_write_text(self.out / "results.json", json.dumps(results, indent=1))
+        _write_csv(self.out / "checkpoints.csv", cps)
+        plot_learning_curve(results, self.out / "learning_curve.png")
+        return results
+
+
+def evaluate_policy_file(path: str | os.PathLike, episodes: int, workers: int = 2,
+                         env_id: str | None = None) -> dict:
+    """``bench eval``: evaluate a frozen policy file from ``policies/`` (interventions off)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no policy file at {path}")
+    st = torch.load(path, weights_only=False)
+    env_id = env_id or st["env_id"]
+    ev = Evaluator(env_id, episodes, workers, 600)
+    try:
+        rows = ev(st["agent_kind"], st["agent"])
+    finally:
+        ev.close()
+    return {"policy": str(path), "method": st["method"], "env_id": env_id,
+            "trained_env_steps": st["env_steps"], **summarize_eval(rows),
+            "eval_seeds": [EVAL_SEED0, EVAL_SEED0 + episodes - 1], "provenance": provenance()}
