@@ -86,9 +86,17 @@ def test_registry_has_the_table_1_rows():
     assert m["qcfql-offline-warmstart"].warm_start and not m["qcfql-offline-warmstart"].online_updates
     assert m["qcfql-stepwise"].h == 1 and not m["qcfql-stepwise"].interventions
     assert m["qcfql-stepwise-intervention"].h == 1 and m["qcfql-stepwise-intervention"].interventions
+    # The external baselines' rows of Table 1.
+    assert len(METHODS) == 10
+    act, sac, hil = m["act"], m["sac"], m["hil-serl"]
+    assert act.chunking and not (act.online_updates or act.interventions or act.warm_start)
+    assert sac.online_updates and not (sac.interventions or sac.warm_start or sac.chunking)
+    assert not sac.offline_pretrain
+    assert hil.online_updates and hil.interventions and hil.warm_start and not hil.chunking
     table = methods_table()
     assert "| Ours (complete pipeline) | `qcfql` | ✓ | ✓ | ✓ | ✓ | ✓ (10) |" in table
-    with pytest.raises(ValueError, match="unknown method 'qcfq'; choose from sac, hil-serl, .*, qcfql$"):
+    assert "| ACT (offline IL) | `act` | ✓ | × | × | × | ✓ (10) |" in table
+    with pytest.raises(ValueError, match="unknown method 'qcfq'; choose from act, sac, hil-serl, .*, qcfql$"):
         get_method("qcfq")
     assert PROFILES["paper"].budget_steps == 108_000 and PROFILES["paper"].warm_steps == 10_000
     assert PROFILES["paper"].utd == 2 and PROFILES["paper"].checkpoint_every == 3_000
@@ -97,7 +105,7 @@ def test_registry_has_the_table_1_rows():
 def test_cli_rejects_unknown_names(capsys):
     with pytest.raises(SystemExit):
         main(["run", "--method", "nope", "--out", "x"])
-    assert "unknown method 'nope'; choose from sac, hil-serl, qcfql-stepwise" in capsys.readouterr().err
+    assert "unknown method 'nope'; choose from act, sac, hil-serl, qcfql-stepwise" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["run", "--method", "qcfql", "--profile", "huge", "--out", "x"])
     assert "unknown profile 'huge'" in capsys.readouterr().err
@@ -191,12 +199,17 @@ def test_methods_snippet_in_the_docs_is_current():
         "print(methods_table())' > docs/snippets/methods_table.md")
 
 
-@pytest.mark.parametrize("method", ["hil-serl", "sac"])
+@pytest.mark.parametrize("method", ["hil-serl", "sac", "act"])
 def test_baselines_run_through_the_harness(tmp_path, demos_root, method):
     """Each external baseline trains for a few steps in the smoke profile and evaluates at
-    the same checkpoints as QC-FQL."""
+    the same checkpoints as QC-FQL (ACT: offline only, one evaluation)."""
     r = Run(method, "WindowInstall-A-v0", "smoke", 0, tmp_path / method, demos=demos_root,
             progress=False).train()
+    if method == "act":
+        assert [c["env_steps"] for c in r["checkpoints"]] == [0]
+        assert r["final"]["grad_steps"] == 100 and r["train_episodes"] == []
+        assert r["hyperparameters"]["chunk"] == 10 and r["checkpoints"][0]["episodes"] == 2
+        return
     assert [c["env_steps"] for c in r["checkpoints"]] == [0, 200, 400]
     assert r["final"]["env_steps"] == 400 and r["final"]["grad_steps"] > 0
     assert r["method"]["h"] == 1 and r["hyperparameters"]

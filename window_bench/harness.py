@@ -64,6 +64,10 @@ def make_agent(method: Method, profile: Profile, obs_dim: int, seed: int,
 
         cfg = QCFQLConfig(h=method.h, hidden=tuple(profile.hidden), batch_size=profile.batch_size)
         return QCFQLAgent(obs_dim, 7, cfg, seed=seed, obs_mean=obs_mean, obs_std=obs_std)
+    if method.agent == "act":
+        from baselines.act import ACT_PROFILES, ACTAgent
+
+        return ACTAgent(obs_dim, 7, ACT_PROFILES[profile.name], seed=seed)
     if method.agent == "hilserl":
         from baselines.hilserl import HILSERLAgent, HILSERLConfig
 
@@ -81,6 +85,10 @@ def agent_from_state(kind: str, state: dict):
         from baselines.hilserl import HILSERLAgent
 
         return HILSERLAgent.from_state_dict(state)
+    if kind == "act":
+        from baselines.act import ACTAgent
+
+        return ACTAgent.from_state_dict(state)
     if kind == "sac":
         from baselines.sac import SACPolicy
 
@@ -138,6 +146,10 @@ class AgentPolicy:
     def __init__(self, agent, deterministic: bool):
         self.agent, self.deterministic = agent, deterministic
         self.h = int(getattr(agent, "h", None) or agent.config.h)
+
+    def reset(self, seed=None):
+        if hasattr(self.agent, "reset"):   # e.g. ACT's temporal-ensembling buffer
+            self.agent.reset()
 
     def act(self, obs):
         return self.agent.act(obs, deterministic=self.deterministic)
@@ -350,7 +362,10 @@ class Run:
         obs = np.concatenate([ep.observations for ep in demos])
         h, p = self.method.h, self.profile
         agent = make_agent(self.method, p, obs.shape[1], self.seed, *obs_normalizer(obs))
-        gamma = agent.config.gamma
+        if self.method.agent == "act":   # ACT z-scores observations and actions itself
+            agent.fit_normalizer(demos)
+            self.demo_episodes = demos
+        gamma = getattr(agent.config, "gamma", 0.99)   # ACT has no discount (no TD learning)
         demo_chunks = sum(-(-ep.T // h) for ep in demos)
         if self.method.agent == "hilserl":   # takeover transitions are added to D_demo too
             demo_chunks += p.budget_steps
@@ -384,6 +399,8 @@ class Run:
                                  f"command asks for {mine!r}")
         self.c = st["counters"]
         self.agent = agent_from_state(self.method.agent, st["agent"])
+        if self.method.agent == "act":
+            self.demo_episodes = self._demos()
         self.demo_rb, self.online_rb = (_replay_from_state(st[k]) for k in ("demo_rb", "online_rb"))
         torch.set_rng_state(st["torch_rng"])
 
@@ -391,9 +408,14 @@ class Run:
     def _elapsed(self) -> float:
         return self.c["wall_clock_s"] + (time.perf_counter() - self._t0)
 
+    def _offline_steps(self) -> int:
+        if self.method.agent == "act":   # ACT's own step count (batch 8; docs/act.md)
+            return self.agent.config.offline_steps
+        return self.profile.offline_steps
+
     def _offline(self, bar) -> None:
         p = self.profile
-        while self.c["offline_done"] < p.offline_steps:
+        while self.c["offline_done"] < self._offline_steps():
             n = self._update(lambda: self.demo_rb.sample(p.batch_size))
             self.c["offline_done"] += n
             self.c["grad_steps"] += n
@@ -413,6 +435,11 @@ class Run:
         if self.method.agent == "hilserl":
             self.agent.update(sample)
             return self.agent.config.critic_actor_ratio
+        if self.method.agent == "act":
+            cfg = self.agent.config
+            self.agent.update(self.agent.sample_batch(self.demo_episodes, cfg.batch_size,
+                                                      self.agent.rng))
+            return 1
         self.agent.update(sample())
         return 1
 
@@ -481,7 +508,7 @@ class Run:
         try:
             if self.c["stage"] == "offline":
                 if m.offline_pretrain:
-                    with tqdm(total=p.offline_steps, initial=self.c["offline_done"],
+                    with tqdm(total=self._offline_steps(), initial=self.c["offline_done"],
                               desc="Stage I  offline", unit="upd", disable=not self.progress) as bar:
                         self._offline(bar)
                 else:

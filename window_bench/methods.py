@@ -36,6 +36,9 @@ class Method:
 
 
 METHODS: dict[str, Method] = {m.name: m for m in (   # in the order of Table 1
+    Method("act", "ACT (offline IL)", "act", 10, warm_start=False, online_updates=False,
+           interventions=False,
+           note="trained on D_demo only; sizes and steps from baselines.act.ACT_PROFILES"),
     Method("sac", "SAC (online RL)", "sac", 1, offline_pretrain=False, warm_start=False,
            interventions=False,
            note="Stable-Baselines3 SAC as is; its replay buffer is pre-filled with D_demo"),
