@@ -8,6 +8,7 @@
     bench methods                                              # Table 1 from the registry
     bench run --method qcfql --env WindowInstall-A-v0 --profile smoke --seed 0 --out runs/x
     bench eval runs/x/policies/step_0000400.pt --episodes 20
+    bench leaderboard --add runs/x                             # tables from raw run files
 """
 
 from __future__ import annotations
@@ -165,7 +166,7 @@ def cmd_demos(args) -> int:
           f"[{s['episode_seconds_min']:.1f}, {s['episode_seconds_max']:.1f}], "
           f"{s['recoveries_mean']:.1f} recoveries per demo; "
           f"{s['simulated_minutes_all_attempts']:.1f} simulated minutes, "
-          f"{s['wall_clock_s']:.0f} s wall clock")
+          f"{s['wall_clock_s']:.0f} s wall clock, {s['cpu_time_s']:.0f} s CPU")
     if s["failure_modes"]:
         print(f"discarded: {s['failure_modes']}")
     print(f"wrote Minari dataset {s['dataset_id']!r} under {args.out}")
@@ -250,6 +251,19 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_leaderboard(args) -> int:
+    from .leaderboard import add_run, build
+
+    for run_dir in args.add or []:
+        try:
+            print(f"added {add_run(run_dir, args.root)}")
+        except (FileNotFoundError, ValueError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+    print(build(args.root))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -319,6 +333,11 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--env", type=_env_id, default=None, help="default: the training env")
     e.add_argument("--out", help="write the summary to this JSON file")
     e.set_defaults(func=cmd_eval)
+    lb = sub.add_parser("leaderboard", help="regenerate the leaderboard from raw run files")
+    lb.add_argument("--add", nargs="+", metavar="RUN_DIR", help="first copy these finished "
+                                                                "runs' raw files in")
+    lb.add_argument("--root", default="leaderboard/runs")
+    lb.set_defaults(func=cmd_leaderboard)
     return p
 
 

@@ -88,7 +88,7 @@ def collect_demos(env_id: str, n: int, out: str | os.PathLike, *, operator: str 
     rollout = Rollout(env, demonstrator, provenance="demo", operator=profile.name, env_id=env_id)
     kept: list[EpisodeLog] = []
     rows: list[dict] = []
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     bar = tqdm(total=n, desc=f"demos {env_id} ({profile.name})", unit="demo", disable=not progress)
     i = 0
     while len(kept) < n and i < max_attempts:
@@ -126,7 +126,8 @@ def collect_demos(env_id: str, n: int, out: str | os.PathLike, *, operator: str 
         "simulated_minutes_all_attempts": sum(r["seconds"] for r in rows) / 60.0,
         "recoveries_mean": float(np.mean([r["recoveries"] for r in rows if r["success"]])),
         "failure_modes": dict(Counter(r["failure_mode"] for r in rows if not r["success"])),
-        "wall_clock_s": round(time.perf_counter() - t0, 1), "seed": seed,
+        "wall_clock_s": round(time.perf_counter() - t0, 1),
+        "cpu_time_s": round(time.process_time() - c0, 1), "seed": seed,
         "episodes": rows, "provenance": provenance(),
     }
     save_episodes(kept, dataset_id, env_id=env_id, obs_dim=kept[0].observations.shape[1],
