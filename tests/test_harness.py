@@ -141,6 +141,15 @@ def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
     capsys.readouterr()
     assert main(["eval", str(out / "policies" / "step_0000400.pt"), "--episodes", "2"]) == 0
     assert "qcfql (400 env steps) on WindowInstall-A-v0: " in capsys.readouterr().out
+    # The leaderboard is regenerated from the raw run files.
+    from window_bench.leaderboard import add_run, build
+
+    dest = add_run(out, tmp_path / "lb")
+    assert sorted(p.name for p in dest.iterdir()) == ["checkpoints.csv", "learning_curve.png",
+                                                       "results.json"]
+    body = build(tmp_path / "lb", readme=tmp_path / "LB.md", snippet=None)
+    assert "| WindowInstall-A-v0 | Ours (complete pipeline) (`qcfql`) | smoke | 0 |" in body
+    assert body in (tmp_path / "LB.md").read_text()
     # The run directory is not silently reused.
     with pytest.raises(FileExistsError, match="--resume"):
         Run("qcfql", "WindowInstall-A-v0", "smoke", 0, out)
