@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import numbers
 import os
-import tempfile
 from pathlib import Path
 from typing import Callable
 
@@ -34,7 +33,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.sac.policies import SACPolicy as SB3SACPolicy
 
-from window_bench.evaluation import atomic_write_text, provenance
+from window_bench.evaluation import atomic_write, atomic_write_text, provenance
 from window_bench.steplog import EpisodeLog
 
 #: SB3 2.x defaults of ``SAC`` that this baseline keeps (disclosed in docs/baselines.md).
@@ -256,17 +255,7 @@ def train_sac(model: SAC, total_steps: int, checkpoint_every: int,
 # --------------------------------------------------------------------------- checkpoints
 def _atomic_write_binary(path: Path, write: Callable) -> None:
     """``write(fileobj)`` into a temporary file next to ``path``, then rename it into place."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write(path, write)
 
 
 def save_sac(model: SAC, directory: str | os.PathLike) -> Path:

@@ -42,7 +42,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from .evaluation import atomic_write_text, provenance, wilson_interval
+from .evaluation import atomic_write, atomic_write_text, provenance, wilson_interval
 from .methods import Method, Profile, get_method, get_profile
 from .rollout import Rollout
 from .steplog import STEP_DT
@@ -245,12 +245,7 @@ def _replay_from_state(sd: dict):
 
 # ---------------------------------------------------------------------------- files
 def _atomic_torch_save(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        torch.save(obj, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    atomic_write(path, lambda f: torch.save(obj, f))
 
 
 def _write_csv(path: Path, checkpoints: list[dict]) -> None:
@@ -295,12 +290,8 @@ def plot_learning_curve(results: dict, path: Path) -> None:
     a2.set_ylabel("intervention rate,\nlast 20 episodes (%)")
     a2.set_xlabel("online interaction (simulated hours, warm start included)")
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
+    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
     plt.close(fig)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(buf.getvalue())
-    os.replace(tmp, path)
 
 
 # ---------------------------------------------------------------------------- the run
