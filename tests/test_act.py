@@ -289,3 +289,18 @@ def test_smoke_model_learns_from_scripted_demos(demos):
     assert last < 0.5 * first, (first, last)
     assert agent.chunk_l1(demos) < 0.6 * before
     assert agent.grad_steps == 150
+
+
+def test_script_trains_evaluates_and_resumes(tmp_path):
+    from baselines.act import main
+
+    out, ckpt = tmp_path / "act.json", tmp_path / "act.pt"
+    common = ["--profile", "smoke", "--demos", "2", "--heldout", "1", "--eval-every", "10",
+              "--out", str(out), "--save", str(ckpt)]
+    main(common + ["--steps", "10", "--episodes", "0"])
+    result = main(common + ["--steps", "20", "--episodes", "1", "--resume"])
+    rows = result["checkpoints"]
+    assert [r["grad_steps"] for r in rows] == [10, 20]
+    assert rows[1]["chunked"]["episodes"] == 1 and rows[1]["temporal_ensembling"]["episodes"] == 1
+    assert result["demo_successes"] == 2 and result["provenance"]["git_commit"]
+    assert ACTAgent.from_state_dict(torch.load(ckpt, weights_only=True)).grad_steps == 20
