@@ -89,6 +89,9 @@ class QCFQLConfig:
     """LayerNorm (eps 1e-6) after each hidden activation of the critic (reference)."""
     obs_std_floor: float = 1e-3
     """Lower bound applied to the observation std given at construction."""
+    act_noise_scale: float = 1.0
+    """Scale of the student's noise ``z`` when acting stochastically (``act`` with
+    ``deterministic=False``: exploration). 1 is the paper and the reference; not in Table 8."""
 
     def __post_init__(self):
         self.hidden = tuple(self.hidden)
@@ -103,7 +106,8 @@ class QCFQLConfig:
                              f"a non-empty tuple of integers >= 1")
         checks = (("alpha", 0.0, float("inf"), True), ("lr", 0.0, float("inf"), False),
                   ("tau", 0.0, 1.0, False), ("gamma", 0.0, 1.0, True),
-                  ("obs_std_floor", 0.0, float("inf"), False))
+                  ("obs_std_floor", 0.0, float("inf"), False),
+                  ("act_noise_scale", 0.0, 10.0, True))
         for name, lo, hi, lo_ok in checks:
             value = getattr(self, name)
             ok = (isinstance(value, numbers.Real) and not isinstance(value, bool)
@@ -245,6 +249,11 @@ class OneStepPolicy(nn.Module):
 #: Keys :meth:`QCFQLAgent.update` reads from a batch (as made by ``chunk_transitions``).
 BATCH_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount", "terminal",
               "valid")
+
+
+def _config_from(saved: dict) -> QCFQLConfig:
+    """A config from a saved dict; fields added since it was saved take their defaults."""
+    return QCFQLConfig(**{f.name: saved[f.name] for f in fields(QCFQLConfig) if f.name in saved})
 
 
 class QCFQLAgent:
@@ -459,7 +468,8 @@ class QCFQLAgent:
         o, single = self._obs_tensor(obs)
         B = o.shape[0]
         z = (torch.zeros(B, self.chunk_dim) if deterministic
-             else torch.randn(B, self.chunk_dim, generator=self.act_generator))
+             else self.config.act_noise_scale
+             * torch.randn(B, self.chunk_dim, generator=self.act_generator))
         u = (self.student(o, z).clamp(-1.0, 1.0) if policy == "student"
              else self.teacher_actions(o, z))
         u = u.view(B, self.config.h, self.action_dim).numpy()
@@ -490,7 +500,7 @@ class QCFQLAgent:
         """Restore :meth:`state_dict` output. The network structure (obs_dim, action_dim, h,
         hidden, num_critics, critic_layer_norm, gelu_approximate) must match this agent (``ValueError``
         otherwise); the other hyperparameters are taken from ``sd``."""
-        saved = QCFQLConfig(**{f.name: sd["config"][f.name] for f in fields(QCFQLConfig)})
+        saved = _config_from(sd["config"])
         structural = {"obs_dim": (sd["obs_dim"], self.obs_dim),
                       "action_dim": (sd["action_dim"], self.action_dim)}
         for name in ("h", "hidden", "num_critics", "critic_layer_norm", "gelu_approximate"):
@@ -511,7 +521,7 @@ class QCFQLAgent:
     @classmethod
     def from_state_dict(cls, sd: dict) -> "QCFQLAgent":
         """A new agent restored from :meth:`state_dict` output."""
-        config = QCFQLConfig(**{f.name: sd["config"][f.name] for f in fields(QCFQLConfig)})
+        config = _config_from(sd["config"])
         agent = cls(sd["obs_dim"], sd["action_dim"], config, seed=sd["seed"])
         agent.load_state_dict(sd)
         return agent

@@ -215,8 +215,11 @@ def cmd_run(args) -> int:
             fp, fn, delay = args.acceptance_noise
             noise = {"false_positive_rate": float(fp), "false_negative_rate": float(fn),
                      "delay_steps": int(delay), "seed": args.seed}
+        from .harness import parse_overrides
+
         run = Run(args.method, args.env, args.profile, args.seed, args.out, resume=args.resume,
-                  operator=args.operator, demos=args.demos, acceptance_noise=noise)
+                  operator=args.operator, demos=args.demos, acceptance_noise=noise,
+                  agent_config=parse_overrides(args.agent_config))
     except (ValueError, FileExistsError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -326,6 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--acceptance-noise", nargs=3, metavar=("FP", "FN", "DELAY"), default=None,
                    help="train on a noisy acceptance sensor: false-positive rate per step, "
                         "false-negative rate, delay in steps (evaluation keeps true acceptance)")
+    r.add_argument("--agent-config", nargs="+", metavar="KEY=VALUE",
+                   help="override fields of the agent's config (recorded in the results), "
+                        "e.g. act_noise_scale=0.0 alpha=100")
     r.set_defaults(func=cmd_run)
     e = sub.add_parser("eval", help="evaluate a saved policy (interventions off)")
     e.add_argument("checkpoint", help="a policies/step_*.pt file of a run")

@@ -57,12 +57,18 @@ RATE_WINDOW = 20
 
 # ---------------------------------------------------------------------------- agents
 def make_agent(method: Method, profile: Profile, obs_dim: int, seed: int,
-               obs_mean=None, obs_std=None):
-    """A fresh learner for ``method`` with the profile's sizes."""
+               obs_mean=None, obs_std=None, overrides: dict | None = None):
+    """A fresh learner for ``method`` with the profile's sizes; ``overrides`` replace
+    fields of the agent's config (``bench run --agent-config KEY=VALUE``)."""
+    overrides = dict(overrides or {})
+    if overrides and method.agent not in ("qcfql", "hilserl"):
+        raise ValueError(f"--agent-config is supported for qcfql and hilserl agents, not "
+                         f"{method.agent!r}")
     if method.agent == "qcfql":
         from baselines.qcfql import QCFQLAgent, QCFQLConfig
 
-        cfg = QCFQLConfig(h=method.h, hidden=tuple(profile.hidden), batch_size=profile.batch_size)
+        cfg = _with_overrides(QCFQLConfig(h=method.h, hidden=tuple(profile.hidden),
+                                          batch_size=profile.batch_size), overrides)
         return QCFQLAgent(obs_dim, 7, cfg, seed=seed, obs_mean=obs_mean, obs_std=obs_std)
     if method.agent == "act":
         from baselines.act import ACT_PROFILES, ACTAgent
@@ -71,9 +77,38 @@ def make_agent(method: Method, profile: Profile, obs_dim: int, seed: int,
     if method.agent == "hilserl":
         from baselines.hilserl import HILSERLAgent, HILSERLConfig
 
-        cfg = HILSERLConfig(hidden=tuple(profile.hidden), batch_size=profile.batch_size)
+        cfg = _with_overrides(HILSERLConfig(hidden=tuple(profile.hidden),
+                                            batch_size=profile.batch_size), overrides)
         return HILSERLAgent(obs_dim, 7, cfg, seed=seed, obs_mean=obs_mean, obs_std=obs_std)
     raise ValueError(f"method {method.name!r}: agent {method.agent!r} is not run by this harness")
+
+
+def _with_overrides(cfg, overrides: dict):
+    import dataclasses
+
+    names = {f.name: f for f in dataclasses.fields(cfg)}
+    for key in overrides:
+        if key not in names:
+            raise ValueError(f"unknown agent config field {key!r}; fields of "
+                             f"{type(cfg).__name__}: {', '.join(names)}")
+    return dataclasses.replace(cfg, **overrides)
+
+
+def parse_overrides(items: list[str] | None) -> dict:
+    """``["alpha=100", "act_noise_scale=0"]`` -> ``{"alpha": 100, "act_noise_scale": 0}``
+    (values parsed as JSON where possible: numbers, booleans, lists)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"--agent-config {item!r}: expected KEY=VALUE")
+        key, value = item.split("=", 1)
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+        if isinstance(out[key], list):
+            out[key] = tuple(out[key])
+    return out
 
 
 def agent_from_state(kind: str, state: dict):
@@ -301,7 +336,8 @@ class Run:
     def __init__(self, method: str, env_id: str, profile: str, seed: int, out: str | os.PathLike,
                  *, resume: bool = False, operator: str = "average",
                  demos: str | os.PathLike | None = None, progress: bool = True,
-                 save_every_s: float = 60.0, acceptance_noise: dict | None = None):
+                 save_every_s: float = 60.0, acceptance_noise: dict | None = None,
+                 agent_config: dict | None = None):
         self.method = get_method(method)
         self.profile = get_profile(profile)
         import window_bench
@@ -317,6 +353,7 @@ class Run:
 
             AcceptanceSensor(**acceptance_noise)     # validates the rates and the delay
         self.acceptance_noise = acceptance_noise
+        self.agent_config = dict(agent_config or {})
         self.out = Path(out)
         self.demos_root = Path(demos) if demos is not None else self.out / "demos"
         self.progress, self.save_every_s = progress, float(save_every_s)
@@ -352,7 +389,8 @@ class Run:
         demos = self._demos()
         obs = np.concatenate([ep.observations for ep in demos])
         h, p = self.method.h, self.profile
-        agent = make_agent(self.method, p, obs.shape[1], self.seed, *obs_normalizer(obs))
+        agent = make_agent(self.method, p, obs.shape[1], self.seed, *obs_normalizer(obs),
+                           overrides=self.agent_config)
         if self.method.agent == "act":   # ACT z-scores observations and actions itself
             agent.fit_normalizer(demos)
             self.demo_episodes = demos
@@ -666,6 +704,7 @@ class Run:
             "schema_version": RESULTS_SCHEMA, "method": self.method.as_dict(),
             "env_id": self.env_id, "profile": self.profile.as_dict(), "seed": self.seed,
             "operator": self.operator, "acceptance_noise": self.acceptance_noise,
+            "agent_config_overrides": self.agent_config,
             "hyperparameters": getattr(self, "hyperparameters", None)
             or agent_hyperparameters(self.agent),
             "final": {"success_rate": final["success_rate"], "wilson95": final["wilson95"],
