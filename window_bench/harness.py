@@ -406,7 +406,8 @@ class Run:
         self.agent, self.demo_rb, self.online_rb = agent, demo_rb, online_rb
         return {"stage": "offline", "offline_done": 0, "env_steps": 0, "episodes": [],
                 "checkpoints": [], "grad_steps": 0, "update_credit": 0.0, "wall_clock_s": 0.0,
-                "next_checkpoint": 0, "obs_dim": int(obs.shape[1])}
+                "next_checkpoint": 0, "obs_dim": int(obs.shape[1]),
+                "provenance_start": provenance()}
 
     def _save(self) -> None:
         _atomic_torch_save({"counters": self.c, "agent": self.agent.state_dict(),
@@ -640,7 +641,7 @@ class Run:
             model = load_sac(sac_dir, env) if self.c["env_steps"] else None
         else:
             self.c = {"stage": "online", "env_steps": 0, "episodes": [], "checkpoints": [],
-                      "grad_steps": 0, "wall_clock_s": 0.0}
+                      "grad_steps": 0, "wall_clock_s": 0.0, "provenance_start": provenance()}
             model = None
         if model is None:
             model = make_sac(env, self._demos(), self.seed, p.budget_steps)
@@ -719,7 +720,8 @@ class Run:
             "checkpoints": cps,
             "train_episodes": self.c["episodes"],
             "eval_seeds": [EVAL_SEED0, EVAL_SEED0 + self.profile.eval_episodes - 1],
-            "provenance": provenance(),
+            "provenance": provenance(),                          # when the results were written
+            "provenance_start": self.c.get("provenance_start"),  # the code the run started on
         }
         atomic_write_text(self.out / "results.json", json.dumps(results, indent=1))
         _write_csv(self.out / "checkpoints.csv", cps)
