@@ -26,8 +26,9 @@ def add_run(run_dir: str | os.PathLike, root: str | os.PathLike = "leaderboard/r
     """Copy a finished run's raw files into ``root/<env>/<method>-<profile>-s<seed>``."""
     run_dir = Path(run_dir)
     results = _load(run_dir / "results.json")
+    tag = "".join(f"-{k}{v}" for k, v in (results.get("agent_config_overrides") or {}).items())
     dest = (Path(root) / results["env_id"]
-            / f"{results['method']['name']}-{results['profile']['name']}-s{results['seed']}")
+            / f"{results['method']['name']}{tag}-{results['profile']['name']}-s{results['seed']}")
     dest.mkdir(parents=True, exist_ok=True)
     for name in RUN_FILES:
         if (run_dir / name).exists():
@@ -57,7 +58,7 @@ def table(results: list[dict]) -> str:
                                          order.get(r["method"]["name"], 99), r["seed"]))
     lines = ["| env | method | profile | seed | final success (%) [95 % Wilson] | M | online "
              "interaction (sim. h) | time-to-95 (sim. h) | cycle time (s) | takeover (min) | "
-             "wall clock (h) | commit |",
+             "wall clock (h) | commit at start |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         f = r["final"]
@@ -65,14 +66,15 @@ def table(results: list[dict]) -> str:
         online = f["sim_hours"] if r["method"]["online_updates"] or r["method"]["warm_start"] else None
         t95 = f.get("time_to_95_sim_hours")
         cyc = f.get("cycle_time_s")
+        extra = "".join(f", {k}={v}" for k, v in (r.get("agent_config_overrides") or {}).items())
         lines.append(
-            f"| {r['env_id']} | {r['method']['label']} (`{r['method']['name']}`) | "
+            f"| {r['env_id']} | {r['method']['label']} (`{r['method']['name']}`{extra}) | "
             f"{r['profile']['name']} | {r['seed']} | {_pct(f['success_rate'])} "
             f"[{_pct(lo)}, {_pct(hi)}] | {f['episodes']} | "
             f"{'–' if online is None else f'{online:.2f}'} | "
             f"{'–' if t95 is None else f'{t95:.2f}'} | {'–' if cyc is None else f'{cyc:.1f}'} | "
             f"{f['takeover_minutes']:.1f} | {f['wall_clock_s'] / 3600:.2f} | "
-            f"{r['provenance']['git_commit'][:12]} |")
+            f"{(r.get('provenance_start') or r['provenance'])['git_commit'][:12]} |")
     return "\n".join(lines)
 
 
