@@ -58,7 +58,7 @@ def table(results: list[dict]) -> str:
                                          order.get(r["method"]["name"], 99), r["seed"]))
     lines = ["| env | method | profile | seed | final success (%) [95 % Wilson] | M | online "
              "interaction (sim. h) | time-to-95 (sim. h) | cycle time (s) | takeover (min) | "
-             "wall clock (h) | commit at start |",
+             "wall clock (h) | commit ¹ |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         f = r["final"]
@@ -84,7 +84,8 @@ def build(root: str | os.PathLike = "leaderboard/runs", readme: str | os.PathLik
     """Regenerate the leaderboard files from ``root``; returns the table."""
     paths = sorted(Path(root).rglob("results.json"))
     results = [_load(p) for p in paths]
-    body = table(results) if results else "No runs yet."
+    body = (table(results) + "\n\n¹ The commit the run started on; for runs that predate that "
+            "record, the commit that wrote their results.") if results else "No runs yet."
     if snippet is not None:
         atomic_write_text(snippet, body + "\n")
     if readme is not None:
