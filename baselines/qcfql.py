@@ -43,6 +43,8 @@ import torch.nn.functional as F
 from torch import nn
 from torchrl.modules import MLP
 
+from window_bench.env import VACUUM_THRESHOLD
+
 #: Bound on normalised observations (in demo standard deviations).
 OBS_CLIP = 10.0
 
@@ -92,6 +94,11 @@ class QCFQLConfig:
     act_noise_scale: float = 1.0
     """Scale of the student's noise ``z`` when acting stochastically (``act`` with
     ``deterministic=False``: exploration). 1 is the paper and the reference; not in Table 8."""
+
+    binary_gripper: bool = False
+    """Feed the critic the vacuum command as the env executes it (``+1`` where the last
+    action entry of each step is > 0.5, else ``-1``) so that ``Q`` values realized chunks and
+    the student's Q gradient never moves the vacuum entry (it is left to distillation)."""
 
     def __post_init__(self):
         self.hidden = tuple(self.hidden)
@@ -359,11 +366,20 @@ class QCFQLAgent:
                 "not_terminal": 1.0 - t["terminal"].to(f32), "valid": t["valid"].to(f32)}
 
     # ------------------------------------------------------------------ losses
+    def critic_input(self, obs: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
+        """``concat(s, flat chunk)``; with ``binary_gripper`` the vacuum entries are replaced
+        by the command the env executes (``VACUUM_THRESHOLD``, as the env's ``step``)."""
+        if self.config.binary_gripper:
+            steps = chunk.reshape(chunk.shape[0], self.config.h, self.action_dim)
+            vac = torch.where(steps[..., -1:] > VACUUM_THRESHOLD, 1.0, -1.0)
+            chunk = torch.cat([steps[..., :-1], vac], dim=-1).reshape(chunk.shape[0], -1)
+        return torch.cat([obs, chunk], dim=-1)
+
     def td_target(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
         """Eq. 6: ``R + gamma^h (1 - terminal) agg_i Qbar_i(s', clip(mu(s', z')))``."""
         with torch.no_grad():
             next_u = self.student(b["next_obs"], self._noise(len(b["reward"]))).clamp(-1, 1)
-            next_q = self.target_critic(torch.cat([b["next_obs"], next_u], dim=-1))
+            next_q = self.target_critic(self.critic_input(b["next_obs"], next_u))
             next_q = next_q.mean(0) if self.config.q_agg == "mean" else next_q.min(0).values
             return b["reward"] + b["discount"] * b["not_terminal"] * next_q
 
@@ -373,7 +389,7 @@ class QCFQLAgent:
         zeroed, and the mean keeps them in the denominator as the reference does.
         ``y`` defaults to :meth:`td_target`. Returns ``(loss, q)``, ``q`` (num_critics, B)."""
         y = self.td_target(b) if y is None else y
-        q = self.critic(torch.cat([b["obs"], b["actions"]], dim=-1))
+        q = self.critic(self.critic_input(b["obs"], b["actions"]))
         loss = ((q - y).square() * b["valid"]).mean()
         return loss, q.detach()
 
@@ -405,7 +421,7 @@ class QCFQLAgent:
         u = self.student(obs, z)
         sq = (u - target).square()
         distill = sq.sum(-1).mean() if self.config.distill_reduction == "sum" else sq.mean()
-        q_pi = self.critic(torch.cat([obs, u.clamp(-1.0, 1.0)], dim=-1), frozen=True).mean(0)
+        q_pi = self.critic(self.critic_input(obs, u.clamp(-1.0, 1.0)), frozen=True).mean(0)
         q_loss = -q_pi.mean()
         if self.config.normalize_q_loss:
             q_loss = q_loss / q_pi.abs().mean().detach().clamp_min(1e-6)
@@ -480,7 +496,7 @@ class QCFQLAgent:
         """Critic values (num_critics, B) of chunks (B, h, A) at observations (B, obs_dim)."""
         o, _ = self._obs_tensor(obs)
         u = torch.as_tensor(np.asarray(chunks, dtype=np.float32)).reshape(o.shape[0], -1)
-        return self.critic(torch.cat([o, u], dim=-1)).numpy()
+        return self.critic(self.critic_input(o, u)).numpy()
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:

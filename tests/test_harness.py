@@ -181,6 +181,22 @@ def test_resume_after_a_kill_reproduces_the_run(tmp_path, demos_root):
             resume=True, demos=demos_root).train()
 
 
+def test_learner_losses_reach_tensorboard(tmp_path, demos_root):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = Run("qcfql-offline", "WindowInstall-A-v0", "smoke", 0, tmp_path / "run",
+              demos=demos_root, progress=False)
+    run.loss_log_every = 5
+    run.train()
+    ea = EventAccumulator(str(tmp_path / "run" / "tb"))
+    ea.Reload()
+    tags = ea.Tags()["scalars"]
+    assert {"loss/critic_loss", "loss/flow_loss", "loss/distill_loss", "loss/q_loss"} <= set(tags)
+    points = ea.Scalars("loss/flow_loss")
+    assert [p.step for p in points] == [5, 10, 15, 20]   # 20 offline updates, 5 per point
+    assert all(np.isfinite(p.value) and p.value > 0 for p in points)
+
+
 def test_offline_only_method_never_touches_the_env(tmp_path, demos_root):
     r = Run("qcfql-offline", "WindowInstall-A-v0", "smoke", 0, tmp_path / "off",
             demos=demos_root, progress=False).train()

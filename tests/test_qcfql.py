@@ -262,6 +262,28 @@ def test_q_term_is_mean_over_ensemble_of_clipped_student_chunk():
     assert out["loss"].item() == pytest.approx(-2.5)
 
 
+def test_binary_gripper_feeds_the_critic_the_executed_vacuum_command():
+    agent = QCFQLAgent(OBS, A, tiny(binary_gripper=True), seed=0)
+    obs = torch.zeros(4, OBS)
+    chunk = torch.zeros(4, 2, A)
+    chunk[:, :, -1] = torch.tensor([0.9, 0.51, 0.5, -0.3]).unsqueeze(-1)   # > 0.5 engages
+    x = agent.critic_input(obs, chunk.reshape(4, -1))
+    vac = x[:, OBS:].view(4, 2, A)[..., -1]
+    assert vac.tolist() == [[1.0, 1.0], [1.0, 1.0], [-1.0, -1.0], [-1.0, -1.0]]
+    assert torch.equal(x[:, OBS:].view(4, 2, A)[..., :-1], chunk[..., :-1])
+    # Q cannot move the vacuum entry of the student: only distillation reaches it.
+    agent_q = QCFQLAgent(OBS, A, tiny(binary_gripper=True, alpha=0.0), seed=0)
+    u = torch.full((3, 2 * A), 0.2, requires_grad=True)
+    q = agent_q.critic(agent_q.critic_input(torch.zeros(3, OBS), u)).sum()
+    q.backward()
+    grad = u.grad.view(3, 2, A)
+    assert not grad[..., -1].any() and grad[..., :-1].abs().sum() > 0
+    # Off (the default): the critic sees the raw entry, as the reference does.
+    plain = QCFQLAgent(OBS, A, tiny(), seed=0)
+    assert torch.equal(plain.critic_input(obs, chunk.reshape(4, -1))[:, OBS:],
+                       chunk.reshape(4, -1))
+
+
 def test_polyak_step():
     agent = QCFQLAgent(OBS, A, tiny(tau=0.25), seed=0)
     before = [p.detach().clone() for p in agent.target_critic.parameters()]

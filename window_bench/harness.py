@@ -53,6 +53,7 @@ STEPS_PER_HOUR = 36_000            # 10 Hz
 EVAL_SEED0 = 100_000               # evaluation episodes use seeds EVAL_SEED0 + i
 TIME_TO_95_J = 3
 RATE_WINDOW = 20
+LOSS_LOG_EVERY = 500    # learner calls averaged into one TensorBoard point (loss/...)
 
 
 # ---------------------------------------------------------------------------- agents
@@ -365,6 +366,8 @@ class Run:
             raise FileExistsError(f"{self.out} holds a finished run (results.json, no state)")
         self.out.mkdir(parents=True, exist_ok=True)
         self._stop_after_env_steps = None   # tests: simulate a kill (no state written)
+        self._tb, self._loss_acc = None, []
+        self.loss_log_every = LOSS_LOG_EVERY
 
     # ------------------------------------------------------------------ setup
     def _demos(self):
@@ -463,15 +466,29 @@ class Run:
         """One learner call on batches from ``sample()``; returns its gradient steps. QC-FQL
         takes one batch per step; HIL-SERL draws a fresh batch per critic step."""
         if self.method.agent == "hilserl":
-            self.agent.update(sample)
-            return self.agent.config.critic_actor_ratio
-        if self.method.agent == "act":
+            metrics, n = self.agent.update(sample), self.agent.config.critic_actor_ratio
+        elif self.method.agent == "act":
             cfg = self.agent.config
-            self.agent.update(self.agent.sample_batch(self.demo_episodes, cfg.batch_size,
-                                                      self.agent.rng))
-            return 1
-        self.agent.update(sample())
-        return 1
+            metrics, n = self.agent.update(self.agent.sample_batch(
+                self.demo_episodes, cfg.batch_size, self.agent.rng)), 1
+        else:
+            metrics, n = self.agent.update(sample()), 1
+        self._log_losses(metrics, n)
+        return n
+
+    def _log_losses(self, metrics: dict, n: int) -> None:
+        """Average the learner's metrics over ``loss_log_every`` calls into TensorBoard
+        (``loss/<name>`` against gradient steps); nothing is kept in the resume state."""
+        self._loss_acc.append(metrics)
+        if len(self._loss_acc) < self.loss_log_every:
+            return
+        if self._tb is not None:
+            step = self.c["grad_steps"] + n
+            for key in self._loss_acc[0]:
+                vals = [m[key] for m in self._loss_acc if isinstance(m.get(key), (int, float))]
+                if vals:
+                    self._tb.add_scalar(f"loss/{key}", float(np.mean(vals)), step)
+        self._loss_acc = []
 
     def _checkpoint_state(self) -> None:
         self.c["wall_clock_s"] = self._elapsed()
@@ -533,7 +550,7 @@ class Run:
             self.c = self._fresh()
             self._save()
         m, p = self.method, self.profile
-        tb = self._tensorboard()
+        tb = self._tb = self._tensorboard()
         evaluator = Evaluator(self.env_id, p.eval_episodes, p.eval_workers, p.max_episode_steps)
         try:
             if self.c["stage"] == "offline":
