@@ -167,7 +167,7 @@ def test_wedging_cue_fires_after_latency(env):
     inside = ENTRY_DEPTH + 0.02
     sup = InstallerSupervisor(_profile(reaction_latency_steps=3, tilt_threshold_deg=1.5))
     calm = [_obs(depth=inside, tilt=np.deg2rad(0.5))] * 5
-    tilted = [_obs(depth=inside, tilt=np.deg2rad(2.0))] * 8
+    tilted = [_obs(depth=inside, tilt=np.deg2rad(2.0), blocked=0.004)] * 8
     kinds = _feed(env, sup, calm + tilted)
     assert kinds[:5] == [None] * 5
     # Cue on the 2nd tilted step (index 6), takeover 3 steps later (index 9).
@@ -175,7 +175,16 @@ def test_wedging_cue_fires_after_latency(env):
     assert sup.events[0] == (9, "wedging", "safety")
     # The same tilt outside the opening is not a cue.
     sup2 = InstallerSupervisor(_profile(tilt_threshold_deg=1.5))
-    assert _feed(env, sup2, [_obs(depth=-0.3, tilt=np.deg2rad(5.0))] * 10) == [None] * 10
+    assert _feed(env, sup2, [_obs(depth=-0.3, tilt=np.deg2rad(5.0), blocked=0.004)] * 10) \
+        == [None] * 10
+    # Nor is a misaligned panel at the entry that still moves freely (no contact): the
+    # policy may yet correct it; wedging is misalignment under blocked motion.
+    sup3 = InstallerSupervisor(_profile(tilt_threshold_deg=1.5, lateral_threshold_mm=2.0))
+    free = [_obs(depth=inside, tilt=np.deg2rad(2.0), lateral=0.004, blocked=0.0)] * 10
+    assert _feed(env, sup3, free) == [None] * 10
+    sup4 = InstallerSupervisor(_profile(lateral_threshold_mm=2.0))
+    kinds = _feed(env, sup4, [_obs(depth=inside, lateral=0.003, blocked=0.002)] * 4)
+    assert kinds == [None, "safety", "safety", "safety"] and sup4.events[0][1] == "wedging"
 
 
 def test_suction_lost_cue(env):

@@ -21,11 +21,12 @@ the paper's installer does: the panel's pose relative to the opening (``window_p
 state. Safety takeovers fire on
 
 * ``suction_lost`` - the vacuum flag drops while the panel is not seated;
-* ``wedging`` - at the entry (the leading face within ``APPROACH_ZONE`` of the wall face)
-  or inside the opening, tilt or lateral offset past the operator's thresholds: loss of
-  visible clearance, or asymmetric contact. With 2 mm per side, a 0.5 m panel tilted by
-  more than ~0.5 degrees cannot enter square, so a quick operator preempts the wedge
-  before the leading face reaches the bevel;
+* ``wedging`` - at the entry (the leading face within 5 mm of the wall face) or inside the
+  opening, tilt or lateral offset past the operator's thresholds while the commanded motion
+  is blocked (contact proxy above ``BLOCKED_MIN``) for two steps: binding under asymmetric
+  contact. A misaligned panel that still moves freely is left to the policy (until v0.4
+  this cue also fired on misalignment alone within 2 cm of the wall; that preempted a
+  competent policy on most approaches, see ``docs/installer-loop.md``);
 * ``stall`` - inside the opening, insertion progress stalls while commanded motion is not
   realized, for ``stall_steps`` steps;
 * ``reinsertion`` - more than ``max_reinsertions`` entries into the opening;
@@ -66,7 +67,7 @@ CUES = ("suction_lost", "wedging", "stall", "reinsertion", "no_progress")
 
 ENTRY_DEPTH = -S.STOP_DEPTH   # seat-relative depth at which the leading face meets the wall
 SEATED_DEPTH = -0.002
-APPROACH_ZONE = 0.02          # m in front of the wall face watched for loss of clearance
+BLOCKED_MIN = 0.001           # m of commanded-but-unrealized translation = in contact
 
 
 class TakeoverSource(Protocol):
@@ -136,7 +137,6 @@ class InstallerSupervisor:
         vac = bool(f["robot0_vacuum"][0] > 0.5)
         seated = depth > SEATED_DEPTH and lateral < 0.002
         zone = vac and depth > ENTRY_DEPTH - 0.005
-        approach = vac and depth > ENTRY_DEPTH - APPROACH_ZONE
 
         lost = self.vacuum_was_on is True and not vac and not seated
         self.vacuum_was_on = vac
@@ -145,8 +145,12 @@ class InstallerSupervisor:
         self.in_zone = zone
         self.depth_hist.append(depth)
         self.blocked_hist.append(float(np.linalg.norm(f["contact_proxy"][:3])))
-        off_axis = approach and not seated and (tilt > np.deg2rad(p.tilt_threshold_deg)
-                             or lateral > p.lateral_threshold_mm / 1000.0)
+        # Wedging is a contact event: misaligned past the operator's thresholds AND the
+        # commanded motion blocked, at the entry or inside the opening. A misaligned panel
+        # that is still moving freely is the policy's business (it may yet correct).
+        off_axis = (zone and not seated and self.blocked_hist[-1] > BLOCKED_MIN
+                    and (tilt > np.deg2rad(p.tilt_threshold_deg)
+                         or lateral > p.lateral_threshold_mm / 1000.0))
         self.off_axis_steps = self.off_axis_steps + 1 if off_axis else 0
         # Progress toward the goal: the panel while it is not held, the seat while it is.
         if vac:
@@ -165,7 +169,7 @@ class InstallerSupervisor:
         if zone and not seated and len(self.depth_hist) > n:
             progress = self.depth_hist[-1] - self.depth_hist[-1 - n]
             blocked = np.mean(self.blocked_hist[-n:])
-            if progress < 0.0005 and blocked > 0.001:
+            if progress < 0.0005 and blocked > BLOCKED_MIN:
                 return "stall"
         if self.entries > p.max_reinsertions:
             return "reinsertion"
