@@ -24,9 +24,9 @@ state. Safety takeovers fire on
 * ``wedging`` - at the entry (the leading face within 5 mm of the wall face) or inside the
   opening, tilt or lateral offset past the operator's thresholds while the commanded motion
   is blocked (contact proxy above ``BLOCKED_MIN``) for two steps: binding under asymmetric
-  contact. A misaligned panel that still moves freely is left to the policy (until v0.4
-  this cue also fired on misalignment alone within 2 cm of the wall; that preempted a
-  competent policy on most approaches, see ``docs/installer-loop.md``);
+  contact. A misaligned panel that still moves freely is left to the policy (earlier
+  versions also fired on misalignment alone within 2 cm of the wall; that preempted a
+  competent policy on most approaches, see CHANGELOG and ``docs/installer-loop.md``);
 * ``stall`` - inside the opening, insertion progress stalls while commanded motion is not
   realized, for ``stall_steps`` steps;
 * ``reinsertion`` - more than ``max_reinsertions`` entries into the opening;
