@@ -95,6 +95,13 @@ class QCFQLConfig:
     """Scale of the student's noise ``z`` when acting stochastically (``act`` with
     ``deterministic=False``: exploration). 1 is the paper and the reference; not in Table 8."""
 
+    policy_ema: float = 0.001
+    """Polyak rate of the averaged copies of the student and the teacher that act and are
+    evaluated (``0``: act with the raw networks, as the paper and the reference do).
+    Training is unchanged: the losses use the raw networks. Not in the paper: added because
+    the closed-loop success of the raw networks swings between 5 % and 70 % from one
+    10k-update checkpoint to the next on WindowInstall-A (``docs/qcfql.md``)."""
+
     binary_gripper: bool = False
     """Feed the critic the vacuum command as the env executes it (``+1`` where the last
     action entry of each step is > 0.5, else ``-1``) so that ``Q`` values realized chunks and
@@ -114,7 +121,7 @@ class QCFQLConfig:
         checks = (("alpha", 0.0, float("inf"), True), ("lr", 0.0, float("inf"), False),
                   ("tau", 0.0, 1.0, False), ("gamma", 0.0, 1.0, True),
                   ("obs_std_floor", 0.0, float("inf"), False),
-                  ("act_noise_scale", 0.0, 10.0, True))
+                  ("act_noise_scale", 0.0, 10.0, True), ("policy_ema", 0.0, 1.0, True))
         for name, lo, hi, lo_ok in checks:
             value = getattr(self, name)
             ok = (isinstance(value, numbers.Real) and not isinstance(value, bool)
@@ -324,6 +331,11 @@ class QCFQLAgent:
         self.optimizer = torch.optim.Adam(self._params, lr=cfg.lr, fused=True)
         self._online = list(self.critic.parameters())
         self._target = list(self.target_critic.parameters())
+        # the acting policy: Polyak averages of the student and the teacher (policy_ema)
+        self.ema_student = copy.deepcopy(self.student).requires_grad_(False)
+        self.ema_teacher = copy.deepcopy(self.teacher).requires_grad_(False)
+        self._policy = [*self.student.parameters(), *self.teacher.parameters()]
+        self._ema = [*self.ema_student.parameters(), *self.ema_teacher.parameters()]
         # separate streams: evaluation rollouts do not shift the training noise
         self.act_generator = torch.Generator().manual_seed(self.seed + 1)
         self.update_generator = torch.Generator().manual_seed(self.seed + 2)
@@ -430,9 +442,12 @@ class QCFQLAgent:
 
     # ------------------------------------------------------------------ update
     def polyak(self) -> None:
-        """``target <- target + tau (online - target)`` for every critic parameter."""
+        """``target <- target + tau (online - target)`` for every critic parameter, and the
+        same with rate ``policy_ema`` for the acting copies of the student and the teacher
+        (``policy_ema = 0``: they are kept equal to the raw networks)."""
         with torch.no_grad():
             torch._foreach_lerp_(self._target, self._online, self.config.tau)
+            torch._foreach_lerp_(self._ema, self._policy, self.config.policy_ema or 1.0)
 
     def update(self, batch: Mapping) -> dict[str, float]:
         """One gradient step on all three networks plus the Polyak step; returns metrics.
@@ -477,7 +492,8 @@ class QCFQLAgent:
 
         ``z ~ N(0, I)`` from the agent's act generator (``deterministic=True``: ``z = 0``).
         ``policy="student"`` is the one-step actor ``mu(s, z)``; ``policy="teacher"`` runs the
-        flow prior (K Euler steps), for the "flow BC only" ablation.
+        flow prior (K Euler steps), for the "flow BC only" ablation. Both act with their
+        Polyak-averaged copies (``config.policy_ema``).
         """
         if policy not in ("student", "teacher"):
             raise ValueError(f"policy = {policy!r} is not allowed: use 'student' or 'teacher'")
@@ -486,8 +502,8 @@ class QCFQLAgent:
         z = (torch.zeros(B, self.chunk_dim) if deterministic
              else self.config.act_noise_scale
              * torch.randn(B, self.chunk_dim, generator=self.act_generator))
-        u = (self.student(o, z).clamp(-1.0, 1.0) if policy == "student"
-             else self.teacher_actions(o, z))
+        u = (self.ema_student(o, z).clamp(-1.0, 1.0) if policy == "student"
+             else self.ema_teacher.integrate(o, z, self.config.flow_steps))
         u = u.view(B, self.config.h, self.action_dim).numpy()
         return u[0] if single else u
 
@@ -500,7 +516,7 @@ class QCFQLAgent:
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
-        """Everything for an exact resume (copies): config, dims, seed, the four networks,
+        """Everything for an exact resume (copies): config, dims, seed, the six networks,
         the optimizer, both noise generators, the normaliser and the update count."""
         return copy.deepcopy({
             "config": asdict(self.config), "obs_dim": self.obs_dim,
@@ -508,6 +524,8 @@ class QCFQLAgent:
             "obs_mean": self.obs_mean, "obs_std": self.obs_std,
             "critic": self.critic.state_dict(), "target_critic": self.target_critic.state_dict(),
             "teacher": self.teacher.state_dict(), "student": self.student.state_dict(),
+            "ema_teacher": self.ema_teacher.state_dict(),
+            "ema_student": self.ema_student.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "act_generator": self.act_generator.get_state(),
             "update_generator": self.update_generator.get_state()})
@@ -530,6 +548,8 @@ class QCFQLAgent:
         self.obs_mean, self.obs_std = sd["obs_mean"], sd["obs_std"]
         for name in ("critic", "target_critic", "teacher", "student"):
             getattr(self, name).load_state_dict(sd[name])
+        for name in ("teacher", "student"):   # states saved before policy_ema act raw
+            getattr(self, f"ema_{name}").load_state_dict(sd.get(f"ema_{name}", sd[name]))
         self.optimizer.load_state_dict(sd["optimizer"])
         self.act_generator.set_state(sd["act_generator"])
         self.update_generator.set_state(sd["update_generator"])

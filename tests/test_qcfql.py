@@ -294,6 +294,35 @@ def test_polyak_step():
         assert not tgt.requires_grad
 
 
+def test_policy_ema_averages_the_acting_networks_and_acting_uses_it():
+    agent = QCFQLAgent(OBS, A, tiny(policy_ema=0.1), seed=0)
+    nets = (agent.student, agent.teacher, agent.ema_student, agent.ema_teacher)
+    before = [[p.detach().clone() for p in n.parameters()] for n in nets]
+    agent.update(make_batch(8, 2))
+    for k, ema in ((0, 2), (1, 3)):
+        changed = False
+        for old, new, avg in zip(before[ema], nets[k].parameters(), nets[ema].parameters()):
+            torch.testing.assert_close(avg, 0.9 * old + 0.1 * new)
+            changed |= not torch.equal(avg, new)
+            assert not avg.requires_grad
+        assert changed   # the average lags the raw network
+    obs = np.array([0.3, -0.2], np.float32)
+    with torch.no_grad():
+        o, z = agent.normalize(torch.as_tensor(obs)[None]), torch.zeros(1, 2 * A)
+        via_ema = agent.ema_student(o, z).clamp(-1, 1).view(2, A).numpy()
+        via_raw = agent.student(o, z).clamp(-1, 1).view(2, A).numpy()
+    assert np.array_equal(agent.act(obs, deterministic=True), via_ema)
+    assert not np.array_equal(via_ema, via_raw)
+    # policy_ema = 0: the acting copies follow the raw networks exactly
+    raw = QCFQLAgent(OBS, A, tiny(policy_ema=0.0), seed=0)
+    raw.update(make_batch(8, 2))
+    for p, q in zip([*raw.student.parameters(), *raw.teacher.parameters()],
+                    [*raw.ema_student.parameters(), *raw.ema_teacher.parameters()]):
+        assert torch.equal(p, q)
+    with pytest.raises(ValueError, match=r"policy_ema = 1.5 .*\[0.0, 1.0\]"):
+        QCFQLConfig(policy_ema=1.5)
+
+
 # ---------------------------------------------------------------------------- act, resume
 
 
@@ -302,8 +331,8 @@ def test_act_shapes_range_and_determinism():
     a, b = QCFQLAgent(OBS, A, cfg, seed=4), QCFQLAgent(OBS, A, cfg, seed=4)
     obs = np.array([0.3, -0.2], np.float32)
     with torch.no_grad():  # large outputs on a few entries so the clip is exercised
-        a.student.net[-1].bias[:5] = 3.0
-        b.student.net[-1].bias[:5] = 3.0
+        a.ema_student.net[-1].bias[:5] = 3.0   # the acting copy (policy_ema)
+        b.ema_student.net[-1].bias[:5] = 3.0
     u = a.act(obs)
     assert u.shape == (3, A) and u.dtype == np.float32
     assert u.min() >= -1 and u.max() <= 1 and (u == 1.0).any()
@@ -314,7 +343,7 @@ def test_act_shapes_range_and_determinism():
     d1, d2 = a.act(obs, deterministic=True), a.act(obs, deterministic=True)
     assert np.array_equal(d1, d2)
     with torch.no_grad():
-        z0 = a.student(a.normalize(torch.as_tensor(obs)[None]), torch.zeros(1, 3 * A))
+        z0 = a.ema_student(a.normalize(torch.as_tensor(obs)[None]), torch.zeros(1, 3 * A))
     assert np.array_equal(d1, z0.clamp(-1, 1).view(3, A).numpy())
     assert a.act(obs, policy="teacher").shape == (3, A)
     with pytest.raises(ValueError, match="obs: expected shape"):
@@ -356,9 +385,10 @@ def test_state_dict_round_trip_is_bit_identical():
         assert restored.update(batch) == expected_metrics
         for p, q in zip(restored._params, expected_params):
             assert torch.equal(p, q)
-        for p, q in zip(restored.target_critic.parameters(),
-                        agent.target_critic.parameters()):
-            assert torch.equal(p, q)
+        for net in ("target_critic", "ema_student", "ema_teacher"):
+            for p, q in zip(getattr(restored, net).parameters(),
+                            getattr(agent, net).parameters()):
+                assert torch.equal(p, q)
         assert restored.num_updates == 4
     with pytest.raises(ValueError, match="hidden"):
         QCFQLAgent(OBS, A, tiny(h=2, hidden=(8,)), seed=0).load_state_dict(sd)
@@ -400,7 +430,7 @@ def test_learns_a_one_step_toy():
     torch.manual_seed(0)
     target = torch.tensor([0.6, -0.6])
     cfg = QCFQLConfig(h=1, hidden=(64, 64), alpha=0.1, distill_reduction="mean",
-                      batch_size=128, lr=1e-3)
+                      batch_size=128, lr=1e-3, policy_ema=0.0)  # the learner, not the average
     agent = QCFQLAgent(2, 2, cfg, seed=0)
     g = torch.Generator().manual_seed(1)
 
