@@ -157,7 +157,7 @@ def test_critic_loss_value_is_mean_squared_td_error():
 
 def test_euler_is_exact_for_constant_velocity_and_clips_only_at_the_end():
     h, K = 2, 10
-    agent = QCFQLAgent(OBS, A, tiny(h=h, flow_steps=K), seed=0)
+    agent = QCFQLAgent(OBS, A, tiny(h=h, flow_steps=K, distill_from_ema=False), seed=0)
     D = h * A
     v0 = torch.linspace(-0.5, 0.5, D)
     with torch.no_grad():
@@ -212,6 +212,7 @@ def shrinking_teacher_and_student(agent, h, offset=0.0):
     set_linear_mlp(agent.teacher.net, slice(OBS, OBS + D), -c * torch.eye(D))
     set_linear_mlp(agent.student.net, slice(OBS, OBS + D), 0.1 * torch.eye(D),
                    bias=torch.full((D,), offset))
+    agent.ema_teacher.load_state_dict(agent.teacher.state_dict())   # the distillation target
 
 
 def test_distillation_shares_the_noise_between_student_and_teacher():
@@ -225,6 +226,20 @@ def test_distillation_shares_the_noise_between_student_and_teacher():
     z = torch.randn(32, h * A)
     other = agent.teacher_actions(b["obs"], torch.randn(32, h * A))
     assert agent.actor_loss(b, z=z, target=other)["distill"].item() > 0.1
+
+
+def test_distillation_target_is_the_averaged_teacher_unless_told_otherwise():
+    h = 2
+    obs, z = torch.randn(4, OBS), torch.randn(4, h * A)
+    for from_ema in (True, False):
+        agent = QCFQLAgent(OBS, A, tiny(h=h, distill_from_ema=from_ema), seed=0)
+        with torch.no_grad():   # raw teacher: constant velocity 0.3; average: 0
+            agent.teacher.net[-1].weight.zero_()
+            agent.teacher.net[-1].bias.fill_(0.3)
+            agent.ema_teacher.net[-1].weight.zero_()
+            agent.ema_teacher.net[-1].bias.zero_()
+        expected = (z + (0.0 if from_ema else 0.3)).clamp(-1, 1)
+        torch.testing.assert_close(agent.teacher_actions(obs, z), expected)
 
 
 def test_distillation_is_squared_l2_over_the_whole_chunk():
