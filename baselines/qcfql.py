@@ -21,7 +21,9 @@ open-loop. Per update, on a batch of fixed-grid chunk transitions
   ``|v(s, x_t, t) - (u - x0)|^2`` masked per step by ``action_mask``;
 * student (Eq. 9): ``alpha |mu(s, z) - a_xi(s, z)|^2 - mean_i Q_i(s, clip(mu(s, z)))`` with
   the SAME ``z`` for student and teacher, ``a_xi`` = ``flow_steps`` Euler steps of the
-  teacher from ``z`` (clipped at the end only), and the critic frozen;
+  teacher from ``z`` (clipped at the end only), and the critic frozen; by default ``a_xi``
+  is the Polyak-averaged teacher and the agent acts with the averaged student
+  (``policy_ema``, ``distill_from_ema``: our addition, see ``docs/qcfql.md``);
 * one Adam step over all three networks on the summed loss (stop-gradients decide who learns
   what, as in the reference, so this equals three separate Adams), then Polyak averaging of
   the target critic.
@@ -97,8 +99,9 @@ class QCFQLConfig:
 
     policy_ema: float = 0.001
     """Polyak rate of the averaged copies of the student and the teacher that act and are
-    evaluated (``0``: act with the raw networks, as the paper and the reference do).
-    Training is unchanged: the losses use the raw networks. Not in the paper: added because
+    evaluated (``0``: act with the raw networks, as the paper and the reference do). The
+    flow loss, the critic and the TD bootstrap use the raw networks; the distillation target
+    is the averaged teacher (``distill_from_ema``). Not in the paper: added because
     the closed-loop success of the raw networks swings between 5 % and 70 % from one
     10k-update checkpoint to the next on WindowInstall-A (``docs/qcfql.md``)."""
 
