@@ -52,6 +52,12 @@ OBS_CLIP = 10.0
 
 # ---------------------------------------------------------------------------- config
 
+#: Choices of ``QCFQLConfig.prior_data`` (the flow teacher's training chunks).
+PRIOR_DATA = ("replay", "accepted", "demo")
+
+#: ``provenance_code`` of a demonstration step (``window_bench.replay.PROVENANCE_CODES``).
+DEMO_CODE = 1
+
 
 @dataclass
 class QCFQLConfig:
@@ -111,6 +117,16 @@ class QCFQLConfig:
     demos the averaged student went 65 -> 80 % with it and 65 -> 45 % without
     (``docs/harness.md``). With ``policy_ema = 0`` both are the same network."""
 
+    prior_data: str = "accepted"
+    """Which replayed chunks the flow teacher (the behaviour prior, Eq. 8) learns from:
+    ``"replay"``, every chunk of the batch (paper: "trained ... on replay data"; reference);
+    ``"accepted"``, the chunks of episodes that ended in acceptance (all of D_demo, and the
+    online episodes the acceptance check passed, their takeover segments included);
+    ``"demo"``, the chunks of D_demo only. The critic and the student use every chunk in all
+    three. Not in the paper: on WindowInstall-A, flow BC on all online chunks took the
+    averaged student from 80 % to 5 % in 4k updates, and on the takeover chunks alone to 0 %
+    (``docs/harness.md``)."""
+
     binary_gripper: bool = False
     """Feed the critic the vacuum command as the env executes it (``+1`` where the last
     action entry of each step is > 0.5, else ``-1``) so that ``Q`` values realized chunks and
@@ -145,6 +161,9 @@ class QCFQLConfig:
         if self.gelu_approximate not in ("tanh", "none"):
             raise ValueError(f"QCFQLConfig.gelu_approximate = {self.gelu_approximate!r} is "
                              f"not allowed: use 'tanh' or 'none'")
+        if self.prior_data not in PRIOR_DATA:
+            raise ValueError(f"QCFQLConfig.prior_data = {self.prior_data!r} is not allowed: "
+                             f"use one of {', '.join(map(repr, PRIOR_DATA))}")
         if self.distill_reduction not in ("sum", "mean"):
             raise ValueError(f"QCFQLConfig.distill_reduction = {self.distill_reduction!r} is "
                              f"not allowed: use 'sum' or 'mean'")
@@ -379,12 +398,32 @@ class QCFQLAgent:
                                  f"{tuple(t[key].shape)}, expected {shape} (h = {h}, "
                                  f"action_dim = {A}, obs_dim = {self.obs_dim})")
         f32 = torch.float32
-        return {"obs": self.normalize(t["obs"].to(f32)),
+        return {"prior_rows": self.prior_rows(batch, B),
+                "obs": self.normalize(t["obs"].to(f32)),
                 "next_obs": self.normalize(t["next_obs"].to(f32)),
                 "actions": t["actions"].to(f32).reshape(B, h * A),
                 "action_mask": t["action_mask"].to(f32),
                 "reward": t["reward"].to(f32), "discount": t["discount"].to(f32),
                 "not_terminal": 1.0 - t["terminal"].to(f32), "valid": t["valid"].to(f32)}
+
+    def prior_rows(self, batch: Mapping, B: int) -> torch.Tensor:
+        """(B,) float 0/1: the rows the flow teacher learns from (``config.prior_data``).
+        ``"accepted"`` reads ``episode_accepted``, ``"demo"`` reads ``provenance_code``; a
+        batch without the key needed raises ``ValueError``."""
+        mode = self.config.prior_data
+        if mode == "replay":
+            return torch.ones(B)
+        key = "episode_accepted" if mode == "accepted" else "provenance_code"
+        if key not in batch.keys():
+            raise ValueError(f"QCFQLAgent.update: prior_data = {mode!r} needs batch[{key!r}] "
+                             f"(ChunkReplay batches carry it); use prior_data='replay' for "
+                             f"batches without it")
+        value = torch.as_tensor(batch[key])
+        rows = value.bool() if mode == "accepted" else (value == DEMO_CODE).any(-1)
+        if tuple(rows.shape) != (B,):
+            raise ValueError(f"QCFQLAgent.update: batch[{key!r}] has shape "
+                             f"{tuple(value.shape)}, expected ({B},{'' if mode == 'accepted' else ' h'})")
+        return rows.float()
 
     # ------------------------------------------------------------------ losses
     def critic_input(self, obs: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
@@ -416,7 +455,9 @@ class QCFQLAgent:
 
     def flow_loss(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
         """Eq. 8 (rectified flow BC), one ``t ~ U[0, 1)`` per sample; squared error masked per
-        step by ``action_mask``, mean over all B x h x A entries (reference)."""
+        step by ``action_mask``, mean over all B x h x A entries (reference). Rows outside
+        ``b["prior_rows"]`` (``config.prior_data``) are masked too, and the mean is then over
+        the kept rows' entries (0 if none is kept)."""
         x1 = b["actions"]
         B = x1.shape[0]
         x0 = self._noise(B)
@@ -424,7 +465,10 @@ class QCFQLAgent:
         x_t = (1.0 - t) * x0 + t * x1
         err = (self.teacher(b["obs"], x_t, t) - (x1 - x0)).square()
         err = err.view(B, self.config.h, self.action_dim) * b["action_mask"].unsqueeze(-1)
-        return err.mean()
+        rows = b.get("prior_rows")
+        if rows is None or self.config.prior_data == "replay":
+            return err.mean()
+        return (err * rows.view(B, 1, 1)).sum() / (rows.sum().clamp_min(1.0) * err[0].numel())
 
     def teacher_actions(self, obs: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """``a_xi(s, z)``: the distillation target, the teacher's chunk from noise ``z`` (no

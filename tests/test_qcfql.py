@@ -39,7 +39,8 @@ def make_batch(B, h, seed=0, obs_dim=OBS, action_dim=A):
         "reward": torch.rand(B, generator=g),
         "discount": torch.full((B,), 0.99 ** h),
         "terminal": torch.zeros(B, dtype=torch.bool),
-        "valid": torch.ones(B, dtype=torch.bool)}, batch_size=[B])
+        "valid": torch.ones(B, dtype=torch.bool),
+        "episode_accepted": torch.ones(B, dtype=torch.bool)}, batch_size=[B])
 
 
 def episode(T, end, rewards=None, obs_dim=OBS):
@@ -53,7 +54,7 @@ def episode(T, end, rewards=None, obs_dim=OBS):
 
 
 def as_batch(chunks):
-    return {k: torch.as_tensor(chunks[k]) for k in BATCH_KEYS}
+    return {k: torch.as_tensor(chunks[k]) for k in (*BATCH_KEYS, "episode_accepted")}
 
 
 def set_constant_critic(critic, values):
@@ -456,7 +457,8 @@ def test_learns_a_one_step_toy():
         return {"obs": obs, "next_obs": obs, "actions": act,
                 "action_mask": torch.ones(n, 1, dtype=torch.bool), "reward": reward,
                 "discount": torch.full((n,), 0.99), "terminal": torch.ones(n, dtype=torch.bool),
-                "valid": torch.ones(n, dtype=torch.bool)}
+                "valid": torch.ones(n, dtype=torch.bool),
+                "episode_accepted": torch.ones(n, dtype=torch.bool)}
 
     probe = np.random.default_rng(0).uniform(-1, 1, (64, 2)).astype(np.float32)
     start = np.linalg.norm(agent.act(probe, deterministic=True)[:, 0] - target.numpy(), axis=1)

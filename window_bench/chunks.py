@@ -31,7 +31,8 @@ from .steplog import EpisodeLog
 
 #: Keys of the dict returned by :func:`chunk_transitions`, in order.
 CHUNK_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount", "terminal",
-              "valid", "n_steps", "provenance_mix", "chunk_start", "any_takeover", "episode_id")
+              "valid", "n_steps", "provenance_mix", "chunk_start", "any_takeover", "episode_id",
+              "episode_accepted")
 
 
 def _check_args(h, gamma) -> tuple[int, float]:
@@ -54,7 +55,9 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
     ``R_k``; ``next_obs`` (K, obs_dim) float32 ``s_min(kh+h, T)``; ``discount`` (K,) float32
     ``gamma ** h``; ``terminal`` (K,) bool; ``valid`` (K,) bool; ``n_steps`` (K,) int64 real
     steps; ``provenance_mix`` (K, h) str, padded with ``""``; ``chunk_start`` (K,) int64
-    ``k*h``; ``any_takeover`` (K,) bool.
+    ``k*h``; ``any_takeover`` (K,) bool; ``episode_id`` (K,) int64; ``episode_accepted`` (K,)
+    bool, the same for every chunk: the episode ended in acceptance (it terminated), so a
+    learner can tell chunks of accepted episodes from the rest (``QCFQLConfig.prior_data``).
 
     Raises ``ValueError`` for ``h`` not an integer >= 1, ``gamma`` outside [0, 1], or an
     invalid episode (:meth:`EpisodeLog.validate`).
@@ -100,6 +103,7 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
         "any_takeover": (provenance_mix == "takeover").any(axis=1),
         # After concat_chunks, (episode_id, chunk_start) still names the step-log window.
         "episode_id": np.full(K, episode.episode_id, dtype=np.int64),
+        "episode_accepted": np.full(K, bool(episode.terminated[-1])),
     }
 
 

@@ -18,7 +18,8 @@ same sequence (:meth:`ChunkReplay.state_dict`).
 Stored keys, per chunk (``K`` chunks of one episode, see :func:`chunk_transitions`): ``obs``,
 ``next_obs`` (float32, obs_dim), ``actions`` (float32, h x 7), ``action_mask`` (bool, h),
 ``reward``, ``discount`` (float32), ``terminal``, ``valid``, ``any_takeover`` (bool),
-``n_steps``, ``chunk_start``, ``episode_id`` (int64) and ``provenance_code`` (uint8, h): the
+``n_steps``, ``chunk_start``, ``episode_id`` (int64), ``episode_accepted`` (bool: the chunk's
+episode ended in acceptance) and ``provenance_code`` (uint8, h): the
 per-step ``provenance_mix`` strings as codes :data:`PROVENANCE_CODES` (TensorDicts hold no
 strings).
 
@@ -46,7 +47,7 @@ PROVENANCE_CODES = {"": 0, "demo": 1, "policy": 2, "takeover": 3}
 #: ``provenance_code`` in place of the ``provenance_mix`` strings).
 REPLAY_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount", "terminal",
                "valid", "n_steps", "chunk_start", "any_takeover", "episode_id",
-               "provenance_code")
+               "episode_accepted", "provenance_code")
 
 
 def _check_count(name: str, value, minimum: int) -> int:
@@ -173,6 +174,10 @@ class ChunkReplay:
             # back in its slot; the saved cursor then restores the FIFO overwrite order
             data = {key: value.clone() for key, value in sd["data"].items()}
             n = len(next(iter(data.values())))
+            if "episode_accepted" not in data:   # saved before the key existed: an
+                # episode was accepted iff one of its chunks terminated
+                accepted = data["episode_id"][data["terminal"]]
+                data["episode_accepted"] = torch.isin(data["episode_id"], accepted)
             self._buffer.extend(TensorDict(data, batch_size=[n]))
         self._buffer.writer.load_state_dict(dict(sd["writer"]))
         self.chunks_added = sd["chunks_added"]
