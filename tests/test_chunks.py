@@ -59,6 +59,7 @@ def reference_chunks(ep, h, gamma):
             chunk_start=t0,
             provenance_mix=[str(ep.provenance[t]) for t in real] + [""] * (h - len(real)),
             any_takeover=any(ep.provenance[t] == "takeover" for t in real),
+            episode_accepted=bool(ep.terminated[-1]),
         ))
         k += 1
     return rows
@@ -82,6 +83,7 @@ def assert_matches_reference(out, ep, h, gamma):
         assert out["chunk_start"][k] == r["chunk_start"]
         assert out["provenance_mix"][k].tolist() == r["provenance_mix"]
         assert bool(out["any_takeover"][k]) is r["any_takeover"]
+        assert bool(out["episode_accepted"][k]) is r["episode_accepted"]
         assert out["discount"][k] == pytest.approx(gamma ** h, rel=1e-6)
 
 

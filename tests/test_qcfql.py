@@ -203,6 +203,47 @@ def test_flow_loss_is_masked_rectified_flow_error():
     torch.testing.assert_close(loss, err.mean())
 
 
+def test_prior_data_accepted_learns_the_flow_only_from_accepted_rows():
+    h, B = 2, 6
+    b = make_batch(B, h)
+    b["episode_accepted"] = torch.tensor([True, False, True, True, False, False])
+    kept = b["episode_accepted"].float()
+    agent = QCFQLAgent(OBS, A, tiny(h=h, prior_data="accepted"), seed=0)
+    paper = QCFQLAgent(OBS, A, tiny(h=h, prior_data="replay"), seed=0)
+    for ag in (agent, paper):
+        ag.update_generator.manual_seed(5)
+    loss = agent.flow_loss(agent.prepare(b))
+    masked = {**b, "action_mask": b["action_mask"] & b["episode_accepted"].unsqueeze(-1)}
+    # the paper's mean over all B rows of the masked error, rescaled to the 3 kept rows
+    torch.testing.assert_close(loss, paper.flow_loss(paper.prepare(masked)) * B / kept.sum())
+    # the rejected rows' actions do not matter at all
+    other = {**b, "actions": b["actions"].clone()}
+    other["actions"][~b["episode_accepted"]] = -b["actions"][~b["episode_accepted"]]
+    agent.update_generator.manual_seed(5)
+    torch.testing.assert_close(agent.flow_loss(agent.prepare(other)), loss)
+    # ... while the paper's replay prior learns from them
+    paper.update_generator.manual_seed(5)
+    assert not torch.allclose(paper.flow_loss(paper.prepare(other)),
+                              paper.flow_loss(paper.prepare(b)))
+
+
+def test_prior_data_demo_reads_provenance_and_bad_input_is_named():
+    h, B = 2, 4
+    b = make_batch(B, h)
+    b["provenance_code"] = torch.tensor([[1, 1], [2, 2], [2, 3], [1, 0]], dtype=torch.uint8)
+    agent = QCFQLAgent(OBS, A, tiny(h=h, prior_data="demo"), seed=0)
+    assert agent.prepare(b)["prior_rows"].tolist() == [1.0, 0.0, 0.0, 1.0]
+    with pytest.raises(ValueError, match="needs batch\\['provenance_code'\\]"):
+        agent.prepare(make_batch(B, h))
+    with pytest.raises(ValueError, match="prior_data = 'online'.*'replay', 'accepted', 'demo'"):
+        QCFQLConfig(prior_data="online")
+    # nothing accepted: the flow loss is 0 and gives the teacher no gradient
+    agent = QCFQLAgent(OBS, A, tiny(h=h), seed=0)
+    b["episode_accepted"] = torch.zeros(B, dtype=torch.bool)
+    loss = agent.flow_loss(agent.prepare(b))
+    assert loss.item() == 0.0
+
+
 # ---------------------------------------------------------------------------- student
 
 

@@ -191,3 +191,18 @@ def test_mixed_batch_exact_split():
         mixed_batch(demo, ChunkReplay(capacity=5, h=3, gamma=0.9), 8)
     with pytest.raises(ValueError, match="buffer is empty"):
         mixed_batch(ChunkReplay(capacity=5, h=2, gamma=0.9), online, 8)
+
+
+def test_episode_accepted_is_stored_and_derived_for_states_saved_without_it():
+    rb = ChunkReplay(capacity=20, h=2, gamma=0.9, seed=0)
+    rb.add_episode(make_log(5, 1))                     # accepted: 3 chunks
+    rb.add_episode(make_log(4, 2, end="truncated"))    # not accepted: 2 chunks
+    batch = rb.sample(200)
+    expected = batch["episode_id"] == 1
+    assert torch.equal(batch["episode_accepted"], expected)
+    sd = rb.state_dict()
+    del sd["data"]["episode_accepted"]                 # a state saved before the key existed
+    old = ChunkReplay(capacity=20, h=2, gamma=0.9)
+    old.load_state_dict(sd)
+    batch = old.sample(200)
+    assert torch.equal(batch["episode_accepted"], batch["episode_id"] == 1)
