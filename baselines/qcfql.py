@@ -53,10 +53,11 @@ OBS_CLIP = 10.0
 # ---------------------------------------------------------------------------- config
 
 #: Choices of ``QCFQLConfig.prior_data`` (the flow teacher's training chunks).
-PRIOR_DATA = ("replay", "accepted", "demo")
+PRIOR_DATA = ("replay", "accepted", "accepted_no_takeover", "demo")
 
-#: ``provenance_code`` of a demonstration step (``window_bench.replay.PROVENANCE_CODES``).
-DEMO_CODE = 1
+#: ``provenance_code`` of a demonstration and of a takeover step
+#: (``window_bench.replay.PROVENANCE_CODES``).
+DEMO_CODE, TAKEOVER_CODE = 1, 3
 
 
 @dataclass
@@ -122,6 +123,7 @@ class QCFQLConfig:
     ``"replay"``, every chunk of the batch (paper: "trained ... on replay data"; reference);
     ``"accepted"``, the chunks of episodes that ended in acceptance (all of D_demo, and the
     online episodes the acceptance check passed, their takeover segments included);
+    ``"accepted_no_takeover"``, the same without the takeover steps;
     ``"demo"``, the chunks of D_demo only. The critic and the student use every chunk in all
     three. Not in the paper: on WindowInstall-A, flow BC on all online chunks took the
     averaged student from 80 % to 5 % in 4k updates, and on the takeover chunks alone to 0 %
@@ -398,7 +400,7 @@ class QCFQLAgent:
                                  f"{tuple(t[key].shape)}, expected {shape} (h = {h}, "
                                  f"action_dim = {A}, obs_dim = {self.obs_dim})")
         f32 = torch.float32
-        return {"prior_rows": self.prior_rows(batch, B),
+        return {"prior_mask": self.prior_mask(batch, B),
                 "obs": self.normalize(t["obs"].to(f32)),
                 "next_obs": self.normalize(t["next_obs"].to(f32)),
                 "actions": t["actions"].to(f32).reshape(B, h * A),
@@ -406,24 +408,35 @@ class QCFQLAgent:
                 "reward": t["reward"].to(f32), "discount": t["discount"].to(f32),
                 "not_terminal": 1.0 - t["terminal"].to(f32), "valid": t["valid"].to(f32)}
 
-    def prior_rows(self, batch: Mapping, B: int) -> torch.Tensor:
-        """(B,) float 0/1: the rows the flow teacher learns from (``config.prior_data``).
-        ``"accepted"`` reads ``episode_accepted``, ``"demo"`` reads ``provenance_code``; a
-        batch without the key needed raises ``ValueError``."""
-        mode = self.config.prior_data
+    def prior_mask(self, batch: Mapping, B: int) -> torch.Tensor | None:
+        """(B, h) float 0/1: the steps the flow teacher learns from (``config.prior_data``);
+        ``None`` for ``"replay"`` (every step). ``"accepted"`` reads ``episode_accepted``,
+        ``"demo"`` reads ``provenance_code``, ``"accepted_no_takeover"`` both; a batch
+        without a key needed raises ``ValueError``."""
+        mode, h = self.config.prior_data, self.config.h
         if mode == "replay":
-            return torch.ones(B)
-        key = "episode_accepted" if mode == "accepted" else "provenance_code"
-        if key not in batch.keys():
-            raise ValueError(f"QCFQLAgent.update: prior_data = {mode!r} needs batch[{key!r}] "
-                             f"(ChunkReplay batches carry it); use prior_data='replay' for "
-                             f"batches without it")
-        value = torch.as_tensor(batch[key])
-        rows = value.bool() if mode == "accepted" else (value == DEMO_CODE).any(-1)
-        if tuple(rows.shape) != (B,):
-            raise ValueError(f"QCFQLAgent.update: batch[{key!r}] has shape "
-                             f"{tuple(value.shape)}, expected ({B},{'' if mode == 'accepted' else ' h'})")
-        return rows.float()
+            return None
+        needs = {"accepted": ("episode_accepted",), "demo": ("provenance_code",),
+                 "accepted_no_takeover": ("episode_accepted", "provenance_code")}[mode]
+        shapes = {"episode_accepted": (B,), "provenance_code": (B, h)}
+        values = {}
+        for key in needs:
+            if key not in batch.keys():
+                raise ValueError(f"QCFQLAgent.update: prior_data = {mode!r} needs "
+                                 f"batch[{key!r}] (ChunkReplay batches carry it); use "
+                                 f"prior_data='replay' for batches without it")
+            values[key] = torch.as_tensor(batch[key])
+            if tuple(values[key].shape) != shapes[key]:
+                raise ValueError(f"QCFQLAgent.update: batch[{key!r}] has shape "
+                                 f"{tuple(values[key].shape)}, expected {shapes[key]}")
+        mask = torch.ones(B, h, dtype=torch.bool)
+        if "episode_accepted" in values:
+            mask &= values["episode_accepted"].bool().unsqueeze(-1)
+        if mode == "demo":
+            mask &= (values["provenance_code"] == DEMO_CODE).any(-1, keepdim=True)
+        if mode == "accepted_no_takeover":
+            mask &= values["provenance_code"] != TAKEOVER_CODE
+        return mask.float()
 
     # ------------------------------------------------------------------ losses
     def critic_input(self, obs: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
@@ -455,9 +468,9 @@ class QCFQLAgent:
 
     def flow_loss(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
         """Eq. 8 (rectified flow BC), one ``t ~ U[0, 1)`` per sample; squared error masked per
-        step by ``action_mask``, mean over all B x h x A entries (reference). Rows outside
-        ``b["prior_rows"]`` (``config.prior_data``) are masked too, and the mean is then over
-        the kept rows' entries (0 if none is kept)."""
+        step by ``action_mask``, mean over all B x h x A entries (reference). Steps outside
+        ``b["prior_mask"]`` (``config.prior_data``) are masked too, and the mean is then
+        over the entries of the rows with a kept step (0 if none is kept)."""
         x1 = b["actions"]
         B = x1.shape[0]
         x0 = self._noise(B)
@@ -465,10 +478,11 @@ class QCFQLAgent:
         x_t = (1.0 - t) * x0 + t * x1
         err = (self.teacher(b["obs"], x_t, t) - (x1 - x0)).square()
         err = err.view(B, self.config.h, self.action_dim) * b["action_mask"].unsqueeze(-1)
-        rows = b.get("prior_rows")
-        if rows is None or self.config.prior_data == "replay":
+        keep = b.get("prior_mask")
+        if keep is None:
             return err.mean()
-        return (err * rows.view(B, 1, 1)).sum() / (rows.sum().clamp_min(1.0) * err[0].numel())
+        rows = (keep > 0).any(-1).sum().clamp_min(1)
+        return (err * keep.unsqueeze(-1)).sum() / (rows * err[0].numel())
 
     def teacher_actions(self, obs: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """``a_xi(s, z)``: the distillation target, the teacher's chunk from noise ``z`` (no

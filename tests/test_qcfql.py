@@ -232,10 +232,16 @@ def test_prior_data_demo_reads_provenance_and_bad_input_is_named():
     b = make_batch(B, h)
     b["provenance_code"] = torch.tensor([[1, 1], [2, 2], [2, 3], [1, 0]], dtype=torch.uint8)
     agent = QCFQLAgent(OBS, A, tiny(h=h, prior_data="demo"), seed=0)
-    assert agent.prepare(b)["prior_rows"].tolist() == [1.0, 0.0, 0.0, 1.0]
+    assert agent.prepare(b)["prior_mask"][:, 0].tolist() == [1.0, 0.0, 0.0, 1.0]
+    b["episode_accepted"] = torch.tensor([True, True, True, False])
+    agent = QCFQLAgent(OBS, A, tiny(h=h, prior_data="accepted_no_takeover"), seed=0)
+    # accepted rows, minus their takeover steps (and the padded step of row 3 is its own
+    # business: action_mask)
+    assert agent.prepare(b)["prior_mask"].tolist() == [[1, 1], [1, 1], [1, 0], [0, 0]]
     with pytest.raises(ValueError, match="needs batch\\['provenance_code'\\]"):
         agent.prepare(make_batch(B, h))
-    with pytest.raises(ValueError, match="prior_data = 'online'.*'replay', 'accepted', 'demo'"):
+    with pytest.raises(ValueError, match="prior_data = 'online'.*'replay', 'accepted', "
+                                         "'accepted_no_takeover', 'demo'"):
         QCFQLConfig(prior_data="online")
     # nothing accepted: the flow loss is 0 and gives the teacher no gradient
     agent = QCFQLAgent(OBS, A, tiny(h=h), seed=0)
