@@ -118,16 +118,19 @@ class QCFQLConfig:
     demos the averaged student went 65 -> 80 % with it and 65 -> 45 % without
     (``docs/harness.md``). With ``policy_ema = 0`` both are the same network."""
 
-    prior_data: str = "accepted"
+    prior_data: str = "accepted_no_takeover"
     """Which replayed chunks the flow teacher (the behaviour prior, Eq. 8) learns from:
     ``"replay"``, every chunk of the batch (paper: "trained ... on replay data"; reference);
     ``"accepted"``, the chunks of episodes that ended in acceptance (all of D_demo, and the
     online episodes the acceptance check passed, their takeover segments included);
-    ``"accepted_no_takeover"``, the same without the takeover steps;
-    ``"demo"``, the chunks of D_demo only. The critic and the student use every chunk in all
-    three. Not in the paper: on WindowInstall-A, flow BC on all online chunks took the
-    averaged student from 80 % to 5 % in 4k updates, and on the takeover chunks alone to 0 %
-    (``docs/harness.md``)."""
+    ``"accepted_no_takeover"`` (default), the same without the takeover steps: the
+    installer's takeovers still turn failing episodes into accepted ones, and the critic
+    still learns from them, but the prior imitates only the demonstrations and the policy's
+    own steps; ``"demo"``, the chunks of D_demo only. The critic and the student use every
+    chunk in all four. Not in the paper: on WindowInstall-A, flow BC on all online chunks
+    took the averaged student from 80 % to 5 % in 4k updates, and on the takeover steps
+    alone to 0 %; complete runs ended at 20 % (``"replay"``), 40-80 % (``"accepted"``) and
+    80-85 % (``"accepted_no_takeover"``) (``docs/harness.md``)."""
 
     binary_gripper: bool = False
     """Feed the critic the vacuum command as the env executes it (``+1`` where the last

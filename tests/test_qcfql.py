@@ -16,6 +16,7 @@ from tensordict import TensorDict
 
 from baselines.qcfql import BATCH_KEYS, OBS_CLIP, QCFQLAgent, QCFQLConfig
 from window_bench.chunks import chunk_transitions
+from window_bench.replay import PROVENANCE_CODES
 from window_bench.steplog import EpisodeLog
 
 torch.set_num_threads(1)
@@ -40,7 +41,8 @@ def make_batch(B, h, seed=0, obs_dim=OBS, action_dim=A):
         "discount": torch.full((B,), 0.99 ** h),
         "terminal": torch.zeros(B, dtype=torch.bool),
         "valid": torch.ones(B, dtype=torch.bool),
-        "episode_accepted": torch.ones(B, dtype=torch.bool)}, batch_size=[B])
+        "episode_accepted": torch.ones(B, dtype=torch.bool),
+        "provenance_code": torch.full((B, h), 2, dtype=torch.uint8)}, batch_size=[B])
 
 
 def episode(T, end, rewards=None, obs_dim=OBS):
@@ -54,7 +56,9 @@ def episode(T, end, rewards=None, obs_dim=OBS):
 
 
 def as_batch(chunks):
-    return {k: torch.as_tensor(chunks[k]) for k in (*BATCH_KEYS, "episode_accepted")}
+    batch = {k: torch.as_tensor(chunks[k]) for k in (*BATCH_KEYS, "episode_accepted")}
+    codes = np.vectorize(PROVENANCE_CODES.get)(chunks["provenance_mix"]).astype(np.uint8)
+    return {**batch, "provenance_code": torch.as_tensor(codes)}
 
 
 def set_constant_critic(critic, values):
@@ -238,8 +242,10 @@ def test_prior_data_demo_reads_provenance_and_bad_input_is_named():
     # accepted rows, minus their takeover steps (and the padded step of row 3 is its own
     # business: action_mask)
     assert agent.prepare(b)["prior_mask"].tolist() == [[1, 1], [1, 1], [1, 0], [0, 0]]
+    bad = make_batch(B, h)
+    del bad["provenance_code"]
     with pytest.raises(ValueError, match="needs batch\\['provenance_code'\\]"):
-        agent.prepare(make_batch(B, h))
+        agent.prepare(bad)
     with pytest.raises(ValueError, match="prior_data = 'online'.*'replay', 'accepted', "
                                          "'accepted_no_takeover', 'demo'"):
         QCFQLConfig(prior_data="online")
@@ -505,7 +511,8 @@ def test_learns_a_one_step_toy():
                 "action_mask": torch.ones(n, 1, dtype=torch.bool), "reward": reward,
                 "discount": torch.full((n,), 0.99), "terminal": torch.ones(n, dtype=torch.bool),
                 "valid": torch.ones(n, dtype=torch.bool),
-                "episode_accepted": torch.ones(n, dtype=torch.bool)}
+                "episode_accepted": torch.ones(n, dtype=torch.bool),
+                "provenance_code": torch.full((n, 1), 2, dtype=torch.uint8)}
 
     probe = np.random.default_rng(0).uniform(-1, 1, (64, 2)).astype(np.float32)
     start = np.linalg.norm(agent.act(probe, deterministic=True)[:, 0] - target.numpy(), axis=1)
