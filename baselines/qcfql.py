@@ -46,6 +46,7 @@ from torch import nn
 from torchrl.modules import MLP
 
 from window_bench.env import VACUUM_THRESHOLD
+from window_bench.replay import PROVENANCE_CODES
 
 #: Bound on normalised observations (in demo standard deviations).
 OBS_CLIP = 10.0
@@ -55,9 +56,8 @@ OBS_CLIP = 10.0
 #: Choices of ``QCFQLConfig.prior_data`` (the flow teacher's training chunks).
 PRIOR_DATA = ("replay", "accepted", "accepted_no_takeover", "demo")
 
-#: ``provenance_code`` of a demonstration and of a takeover step
-#: (``window_bench.replay.PROVENANCE_CODES``).
-DEMO_CODE, TAKEOVER_CODE = 1, 3
+#: ``provenance_code`` of a demonstration and of a takeover step in replay batches.
+DEMO_CODE, TAKEOVER_CODE = PROVENANCE_CODES["demo"], PROVENANCE_CODES["takeover"]
 
 
 @dataclass
