@@ -104,6 +104,13 @@ class QCFQLConfig:
     """Scale of the student's noise ``z`` when acting stochastically (``act`` with
     ``deterministic=False``: exploration). 1 is the paper and the reference; not in Table 8."""
 
+    td_noise_scale: float = 1.0
+    """Scale of the noise ``z'`` of the student's next chunk in the TD target (Eq. 6): the
+    critic learns the value of ``mu(s, z')`` with ``z' ~ N(0, td_noise_scale^2 I)``. 1 is the
+    paper and the reference. ``0`` makes the critic value the deterministic student that
+    evaluation runs (``z = 0``); with ``act_noise_scale = 0`` it is also the policy that
+    collects the online data. Not in Table 8 (``docs/qcfql.md``)."""
+
     policy_ema: float = 0.001
     """Polyak rate of the averaged copies of the student and the teacher that act and are
     evaluated (``0``: act with the raw networks, as the paper and the reference do). The
@@ -151,7 +158,8 @@ class QCFQLConfig:
         checks = (("alpha", 0.0, float("inf"), True), ("lr", 0.0, float("inf"), False),
                   ("tau", 0.0, 1.0, False), ("gamma", 0.0, 1.0, True),
                   ("obs_std_floor", 0.0, float("inf"), False),
-                  ("act_noise_scale", 0.0, 10.0, True), ("policy_ema", 0.0, 1.0, True))
+                  ("act_noise_scale", 0.0, 10.0, True), ("td_noise_scale", 0.0, 10.0, True),
+                  ("policy_ema", 0.0, 1.0, True))
         for name, lo, hi, lo_ok in checks:
             value = getattr(self, name)
             ok = (isinstance(value, numbers.Real) and not isinstance(value, bool)
@@ -452,9 +460,11 @@ class QCFQLAgent:
         return torch.cat([obs, chunk], dim=-1)
 
     def td_target(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Eq. 6: ``R + gamma^h (1 - terminal) agg_i Qbar_i(s', clip(mu(s', z')))``."""
+        """Eq. 6: ``R + gamma^h (1 - terminal) agg_i Qbar_i(s', clip(mu(s', z')))``, with
+        ``z' ~ N(0, I)`` scaled by ``config.td_noise_scale``."""
         with torch.no_grad():
-            next_u = self.student(b["next_obs"], self._noise(len(b["reward"]))).clamp(-1, 1)
+            z = self.config.td_noise_scale * self._noise(len(b["reward"]))
+            next_u = self.student(b["next_obs"], z).clamp(-1, 1)
             next_q = self.target_critic(self.critic_input(b["next_obs"], next_u))
             next_q = next_q.mean(0) if self.config.q_agg == "mean" else next_q.min(0).values
             return b["reward"] + b["discount"] * b["not_terminal"] * next_q

@@ -112,6 +112,31 @@ def test_td_target_uses_mean_over_ensemble_or_min_when_asked():
         torch.testing.assert_close(y, b["reward"] + 0.99 ** 2 * expected)
 
 
+def test_td_target_bootstraps_from_the_deterministic_student_with_td_noise_scale_zero():
+    b = make_batch(5, 2, seed=3)
+    agent = QCFQLAgent(OBS, A, tiny(td_noise_scale=0.0), seed=0)
+    prepared = agent.prepare(b)
+    targets = []
+    for g in (1, 2):   # z' no longer depends on the generator's state
+        agent.update_generator.manual_seed(g)
+        targets.append(agent.td_target(prepared))
+    torch.testing.assert_close(targets[0], targets[1])
+    with torch.no_grad():
+        next_u = agent.student(prepared["next_obs"], torch.zeros(5, 2 * A)).clamp(-1, 1)
+        q = agent.target_critic(agent.critic_input(prepared["next_obs"], next_u)).mean(0)
+    torch.testing.assert_close(targets[0], b["reward"] + 0.99 ** 2 * q)
+    # the paper's z' ~ N(0, I) gives another target, which changes with the draw
+    noisy = QCFQLAgent(OBS, A, tiny(), seed=0)
+    noisy.load_state_dict({**agent.state_dict(), "config": {**agent.state_dict()["config"],
+                                                             "td_noise_scale": 1.0}})
+    drawn = []
+    for g in (1, 2):
+        noisy.update_generator.manual_seed(g)
+        drawn.append(noisy.td_target(prepared))
+    assert not torch.allclose(drawn[0], drawn[1])
+    assert not torch.allclose(drawn[0], targets[0])
+
+
 def test_invalid_windows_contribute_no_critic_gradient():
     h = 3
     # truncated at T = 5: chunk 1 has 2 real steps -> invalid
@@ -483,7 +508,8 @@ def test_update_rejects_bad_batches_and_config_errors():
         agent.update({"obs": torch.zeros(4, OBS)})
     for kwargs, match in (({"h": 0}, "h = 0"), ({"alpha": -1.0}, "alpha = -1.0"),
                           ({"tau": 0.0}, "tau = 0.0"), ({"q_agg": "max"}, "q_agg"),
-                          ({"hidden": ()}, "hidden"), ({"gelu_approximate": "x"}, "gelu")):
+                          ({"hidden": ()}, "hidden"), ({"gelu_approximate": "x"}, "gelu"),
+                          ({"td_noise_scale": -0.5}, r"td_noise_scale = -0.5 .*\[0.0, 10.0\]")):
         with pytest.raises(ValueError, match=match):
             QCFQLConfig(**kwargs)
 
