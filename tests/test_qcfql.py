@@ -307,6 +307,25 @@ def test_distillation_shares_the_noise_between_student_and_teacher():
     assert agent.actor_loss(b, z=z, target=other)["distill"].item() > 0.1
 
 
+def test_distill_noise_scale_zero_trains_the_student_at_z_zero_only():
+    h = 2
+    agent = QCFQLAgent(OBS, A, tiny(h=h, distill_noise_scale=0.0), seed=0)
+    b = agent.prepare(make_batch(16, h, seed=4))
+    zero = torch.zeros(16, h * A)
+    expected = agent.actor_loss(b, z=zero)
+    for g in (1, 2):   # the drawn noise is scaled away whatever the generator's state
+        agent.update_generator.manual_seed(g)
+        out = agent.actor_loss(b)
+        torch.testing.assert_close(out["loss"], expected["loss"])
+        torch.testing.assert_close(out["distill"], expected["distill"])
+    # the paper's scale draws z ~ N(0, I): another loss
+    agent.config.distill_noise_scale = 1.0
+    agent.update_generator.manual_seed(1)
+    assert not torch.allclose(agent.actor_loss(b)["distill"], expected["distill"])
+    with pytest.raises(ValueError, match=r"distill_noise_scale = 11 .*\[0.0, 10.0\]"):
+        QCFQLConfig(distill_noise_scale=11)
+
+
 def test_distillation_target_is_the_averaged_teacher_unless_told_otherwise():
     h = 2
     obs, z = torch.randn(4, OBS), torch.randn(4, h * A)
