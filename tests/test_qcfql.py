@@ -440,7 +440,7 @@ def test_policy_ema_averages_the_acting_networks_and_acting_uses_it():
 
 
 def test_act_shapes_range_and_determinism():
-    cfg = tiny(h=3, hidden=(16, 16))
+    cfg = tiny(h=3, hidden=(16, 16), act_noise_scale=1.0)
     a, b = QCFQLAgent(OBS, A, cfg, seed=4), QCFQLAgent(OBS, A, cfg, seed=4)
     obs = np.array([0.3, -0.2], np.float32)
     with torch.no_grad():  # large outputs on a few entries so the clip is exercised
@@ -569,3 +569,13 @@ def test_learns_a_one_step_toy():
     assert q_good > 0.6 and q_zero < 0.3, (q_good, q_zero)
     # 0.83 away at the start; measured 0.18 after 300 updates
     assert end.mean() < 0.3 and end.mean() < start.mean() - 0.4, (start.mean(), end.mean())
+
+
+def test_paper_agent_overrides_name_every_departure_from_the_paper():
+    from baselines.qcfql import PAPER_AGENT
+
+    ours, paper = QCFQLConfig(), QCFQLConfig(**PAPER_AGENT)
+    for name, value in PAPER_AGENT.items():
+        assert getattr(ours, name) != value, name   # a real departure, not a no-op
+        assert getattr(paper, name) == value
+    assert (paper.alpha, paper.distill_reduction, paper.flow_steps) == (300.0, "sum", 10)
