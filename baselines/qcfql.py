@@ -107,7 +107,7 @@ class QCFQLConfig:
     """Scale of the student's noise ``z`` when acting stochastically (``act`` with
     ``deterministic=False``: exploration). 1 is the paper and the reference; not in Table 8.
     Default 0 (our choice): on WindowInstall-A no training episode at 1.0 was accepted
-    (0 %, the installer took over 63 % of the steps), and the runs below use 0."""
+    (0 %, the installer took over 63 % of the steps; ``docs/harness.md``)."""
 
     td_noise_scale: float = 0.0
     """Scale of the noise ``z'`` of the student's next chunk in the TD target (Eq. 6): the
@@ -203,7 +203,7 @@ class QCFQLConfig:
 PAPER_AGENT = {"act_noise_scale": 1.0, "td_noise_scale": 1.0, "distill_noise_scale": 1.0,
                "policy_ema": 0.0, "distill_from_ema": False, "prior_data": "replay"}
 
-#: Named configurations: ``paper`` (Table 8, 4 x 512) and ``cpu`` (2 x 256 networks, about 6x
+#: Named configurations: ``paper`` (Table 8's sizes, 4 x 512, with our defaults) and ``cpu`` (2 x 256 networks, about 6x
 #: faster updates on one CPU thread; ``benchmarks/update_speed.py`` measures both).
 PROFILES = {"paper": QCFQLConfig(), "cpu": QCFQLConfig(hidden=(256, 256))}
 
