@@ -1,4 +1,4 @@
-"""Learning agents run by the harness (``window_bench.harness``).
+"""Learning agents run by the harness (``window_bench.harness.run``).
 
 * ``qcfql.py`` - QC-FQL: flow teacher, one-step student, chunk critic ensemble (paper Sec. 3.5).
 * ``hilserl.py`` - the HIL-SERL-style RLPD learner (step-wise, tanh-Gaussian, LayerNorm critics).

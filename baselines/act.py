@@ -53,10 +53,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from window_bench.steplog import ACTION_DIM, EpisodeLog
+from window_bench.data.steplog import ACTION_DIM, EpisodeLog
 
 #: Number of leading floats of the ``flat`` observation that belong to the robot: the
-#: ``robot0_*`` entries of ``window_bench.env.STATE_KEYS`` (7 + 7 + 3 + 4 + 1 + 18).
+#: ``robot0_*`` entries of ``window_bench.envs.env.STATE_KEYS`` (7 + 7 + 3 + 4 + 1 + 18).
 FLAT_ROBOT_DIM = 40
 
 
@@ -646,7 +646,7 @@ def _collect_demos(env_id: str, seeds) -> list[EpisodeLog]:
     """Scripted-installer episodes as ``"demo"`` step logs (a stand-in for teleoperation)."""
     import gymnasium as gym
 
-    from window_bench.installer import ScriptedInstaller  # importing it registers the ids
+    from window_bench.installer.scripted import ScriptedInstaller  # importing it registers the ids
 
     env = gym.make(env_id, obs_mode="flat")
     episodes = []
@@ -708,7 +708,7 @@ def main(argv=None) -> dict:
     import os
     import time
 
-    from window_bench.evaluation import atomic_write_text, provenance, wilson_interval
+    from window_bench.harness.evaluation import atomic_write_text, provenance, wilson_interval
 
     p = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
     p.add_argument("--env", default="WindowInstall-A-v0")

@@ -4,15 +4,15 @@ This is the ``hil-serl`` baseline of the paper's Table 1 (Section 4.3): a unimod
 tanh-Gaussian actor and a LayerNorm critic ensemble trained by soft actor-critic on
 symmetric batches (half demonstrations, half online experience, as in RLPD), with offline
 pretraining, a non-updating warm start and installer takeovers. The harness
-(``window_bench.harness``) owns the stages, the buffers and the takeovers; this module owns
+(``window_bench.harness.run``) owns the stages, the buffers and the takeovers; this module owns
 the learner and two rules the harness applies:
 
 * :func:`hilserl_buffers_for` - where a step of a given provenance is stored. As in HIL-SERL,
   every online transition goes to the online buffer and transitions executed by a takeover
   ALSO go to the demo buffer (:func:`takeover_segments` cuts them out of an episode log).
 * :func:`symmetric_sampler` - a ``sample() -> TensorDict`` that draws exactly half of every
-  batch from the demo buffer (``window_bench.replay.mixed_batch`` does the same for two
-  :class:`~window_bench.replay.ChunkReplay` buffers).
+  batch from the demo buffer (``window_bench.data.replay.mixed_batch`` does the same for two
+  :class:`~window_bench.data.replay.ChunkReplay` buffers).
 
 Defaults follow HIL-SERL's learner (``serl_launcher`` ``SACAgent`` as configured by
 ``make_sac_pixel_agent``): 2 critics with LayerNorm and tanh activations, 256x256, target =
@@ -31,7 +31,7 @@ the target min over every member (RLPD draws 2 of 10), trains the actor on the m
 members (RLPD and HIL-SERL use the mean), and samples with the global torch RNG (an exact
 resume needs the agent's own generators). The networks are TorchRL :class:`~torchrl.modules.MLP`
 stacks; batches are :class:`~tensordict.TensorDict` (keys of
-:func:`window_bench.chunks.chunk_transitions` with ``h = 1``).
+:func:`window_bench.data.chunks.chunk_transitions` with ``h = 1``).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ from tensordict import TensorDict
 from torch import nn
 from torchrl.modules import MLP
 
-from window_bench.steplog import PROVENANCES, EpisodeLog
+from window_bench.data.steplog import PROVENANCES, EpisodeLog
 
 _ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
 #: Batch keys the learner reads (``valid`` is optional and defaults to all True).

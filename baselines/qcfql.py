@@ -3,7 +3,7 @@
 Read top to bottom: the config, the three networks, the losses (paper Eqs. 6-9), one
 update, acting, and the state dict. Everything runs in PyTorch on one CPU thread; TorchRL
 supplies the teacher/student MLPs (``torchrl.modules.MLP``) and the replay
-(:mod:`window_bench.replay`). The critic ensemble, the flow teacher, the distillation and the
+(:mod:`window_bench.data.replay`). The critic ensemble, the flow teacher, the distillation and the
 Polyak average are written here: TorchRL's MLP puts the norm before the activation (the
 reference critic has it after), its ``EnsembleModule`` vmaps one module (slower here than
 plain per-member calls, see ``benchmarks/update_speed.py``) and its ``SoftUpdate`` needs a
@@ -12,7 +12,7 @@ plain per-member calls, see ``benchmarks/update_speed.py``) and its ``SoftUpdate
 The agent acts in chunks: from state ``s_kh`` the student ``mu(s, z)``, ``z ~ N(0, I)``,
 outputs a whole chunk ``u_k`` of ``h`` actions (h x 7 values in [-1, 1]) that runs
 open-loop. Per update, on a batch of fixed-grid chunk transitions
-(:func:`window_bench.chunks.chunk_transitions`):
+(:func:`window_bench.data.chunks.chunk_transitions`):
 
 * critic (Eqs. 6-7): ``y = R_k + gamma^h (1 - terminal) mean_i Qbar_i(s', clip(mu(s', z')))``,
   loss ``mean_i,b valid_b (Q_i(s, u) - y)^2``; windows cut short by truncation
@@ -45,8 +45,8 @@ import torch.nn.functional as F
 from torch import nn
 from torchrl.modules import MLP
 
-from window_bench.env import VACUUM_THRESHOLD
-from window_bench.replay import PROVENANCE_CODES
+from window_bench.envs.env import VACUUM_THRESHOLD
+from window_bench.data.replay import PROVENANCE_CODES
 
 #: Bound on normalised observations (in demo standard deviations).
 OBS_CLIP = 10.0
@@ -557,7 +557,7 @@ class QCFQLAgent:
         """One gradient step on all three networks plus the Polyak step; returns metrics.
 
         ``batch``: keys :data:`BATCH_KEYS` as produced by ``chunk_transitions`` /
-        :class:`window_bench.replay.ChunkReplay` (``obs`` (B, obs_dim), ``actions`` (B, h, 7),
+        :class:`window_bench.data.replay.ChunkReplay` (``obs`` (B, obs_dim), ``actions`` (B, h, 7),
         ``action_mask`` (B, h), ``reward``, ``discount``, ``terminal``, ``valid`` (B,)).
         """
         b = self.prepare(batch)

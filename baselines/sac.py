@@ -33,8 +33,8 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.sac.policies import SACPolicy as SB3SACPolicy
 
-from window_bench.evaluation import atomic_write, atomic_write_text, provenance
-from window_bench.steplog import EpisodeLog
+from window_bench.harness.evaluation import atomic_write, atomic_write_text, provenance
+from window_bench.data.steplog import EpisodeLog
 
 #: SB3 2.x defaults of ``SAC`` that this baseline keeps (disclosed in docs/baselines.md).
 SB3_SAC_DEFAULTS = {

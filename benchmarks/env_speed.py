@@ -54,9 +54,9 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 import window_bench  # noqa: E402,F401  (registers the ids)
-from window_bench import scene as S  # noqa: E402
-from window_bench.controller import OSC, OSCGains, osc_torque  # noqa: E402
-from window_bench.evaluation import atomic_write_text  # noqa: E402
+from window_bench.envs import scene as S  # noqa: E402
+from window_bench.envs.controller import OSC, OSCGains, osc_torque  # noqa: E402
+from window_bench.harness.evaluation import atomic_write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PHYS_PER_ENV_STEP = S.CONTROL_SUBSTEPS * S.PHYSICS_PER_CONTROL  # 100

@@ -55,9 +55,9 @@ from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # baselines/ from a checkout
 
 from baselines.qcfql import QCFQLAgent, QCFQLConfig  # noqa: E402
-from window_bench.evaluation import atomic_write_text, provenance  # noqa: E402
-from window_bench.replay import ChunkReplay, mixed_batch  # noqa: E402
-from window_bench.steplog import EpisodeLog  # noqa: E402
+from window_bench.harness.evaluation import atomic_write_text, provenance  # noqa: E402
+from window_bench.data.replay import ChunkReplay, mixed_batch  # noqa: E402
+from window_bench.data.steplog import EpisodeLog  # noqa: E402
 
 PROFILES = {"paper": (512, 512, 512, 512), "cpu": (256, 256)}
 OBS_DIM, BATCH, H = 52, 256, 10

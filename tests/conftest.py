@@ -38,7 +38,7 @@ def tcp_action(env, target_pos, g=0.0, gain=1.0):
     The action is the increment in the current TCP frame at 0.025 m per unit, so a world
     displacement d maps to R.T @ d / 0.025, clipped to the box.
     """
-    from window_bench.env import POS_SCALE
+    from window_bench.envs.env import POS_SCALE
 
     p, R = env.unwrapped.tcp_pose()
     a = np.zeros(7)

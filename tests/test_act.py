@@ -11,8 +11,8 @@ import torch
 
 from baselines.act import (ACT_PROFILES, FLAT_ROBOT_DIM, ACTAgent, ACTConfig, _collect_demos,
                            act_loss, kl_to_prior, temporal_ensemble)
-from window_bench.env import STATE_KEYS
-from window_bench.steplog import EpisodeLog
+from window_bench.envs.env import STATE_KEYS
+from window_bench.data.steplog import EpisodeLog
 
 torch.set_num_threads(1)
 SMOKE = ACT_PROFILES["smoke"]

@@ -7,8 +7,8 @@ off directly, and ``actions[t, j] = 10 * t + j`` so every executed action is dis
 import numpy as np
 import pytest
 
-from window_bench.chunks import CHUNK_KEYS, chunk_transitions, concat_chunks
-from window_bench.steplog import PROVENANCES, TAKEOVER_KINDS, EpisodeLog
+from window_bench.data.chunks import CHUNK_KEYS, chunk_transitions, concat_chunks
+from window_bench.data.steplog import PROVENANCES, TAKEOVER_KINDS, EpisodeLog
 
 OBS_DIM = 3
 

@@ -8,8 +8,8 @@ import minari
 import numpy as np
 import pytest
 
-from window_bench.dataset import SCHEMA_VERSION, load_episodes, save_episodes
-from window_bench.steplog import EpisodeLog
+from window_bench.data.dataset import SCHEMA_VERSION, load_episodes, save_episodes
+from window_bench.data.steplog import EpisodeLog
 
 OBS_DIM = 4
 ENV_ID = "WindowBench-v0"
@@ -221,7 +221,7 @@ def test_invalid_episode_refused_before_writing(tmp_path, episodes, breakage):
 
 
 def test_failed_write_leaves_nothing(tmp_path, episodes, monkeypatch):
-    import window_bench.dataset as wbd
+    import window_bench.data.dataset as wbd
 
     root = tmp_path / "ds"
 

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from window_bench.effort import (effort_minutes, effort_summary, intervention_rate,
+from window_bench.data.effort import (effort_minutes, effort_summary, intervention_rate,
                                  takeover_count)
-from window_bench.steplog import EpisodeLog
+from window_bench.data.steplog import EpisodeLog
 
 
 def log(provenance, end="truncated"):

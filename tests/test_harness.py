@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from window_bench.cli import main
-from window_bench.dataset import load_episodes
-from window_bench.demos import collect_demos
-from window_bench.evaluation import wilson_interval
-from window_bench.harness import Run, summarize_eval, time_to_threshold
-from window_bench.methods import METHODS, PROFILES, get_method, methods_table
+from window_bench.data.dataset import load_episodes
+from window_bench.installer.demos import collect_demos
+from window_bench.harness.evaluation import wilson_interval
+from window_bench.harness.run import Run, summarize_eval, time_to_threshold
+from window_bench.harness.methods import METHODS, PROFILES, get_method, methods_table
 
 
 # ---------------------------------------------------------------- metrics
@@ -142,7 +142,7 @@ def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
     assert main(["eval", str(out / "policies" / "step_0000400.pt"), "--episodes", "2"]) == 0
     assert "qcfql (400 env steps) on WindowInstall-A-v0: " in capsys.readouterr().out
     # The leaderboard is regenerated from the raw run files.
-    from window_bench.leaderboard import add_run, build
+    from window_bench.harness.leaderboard import add_run, build
 
     dest = add_run(out, tmp_path / "lb")
     assert sorted(p.name for p in dest.iterdir()) == ["checkpoints.csv", "learning_curve.png",
@@ -220,7 +220,7 @@ def test_methods_snippet_in_the_docs_is_current():
 
     snippet = Path(__file__).resolve().parents[1] / "docs" / "snippets" / "methods_table.md"
     assert snippet.read_text().strip() == methods_table().strip(), (
-        "regenerate it: python -c 'from window_bench.methods import methods_table; "
+        "regenerate it: python -c 'from window_bench.harness.methods import methods_table; "
         "print(methods_table())' > docs/snippets/methods_table.md")
 
 

@@ -16,9 +16,9 @@ from tensordict import TensorDict
 from baselines.hilserl import (BATCH_KEYS, RLPD_CONFIG, HILSERLAgent, HILSERLConfig,
                                hilserl_buffers_for, obs_normalizer, symmetric_sampler,
                                takeover_segments)
-from window_bench.chunks import chunk_transitions
-from window_bench.installer import ScriptedInstaller
-from window_bench.steplog import EpisodeLog
+from window_bench.data.chunks import chunk_transitions
+from window_bench.installer.scripted import ScriptedInstaller
+from window_bench.data.steplog import EpisodeLog
 
 torch.set_num_threads(1)
 OBS_DIM = 52
@@ -364,8 +364,8 @@ def test_symmetric_sampler_is_exactly_half_demo(demo_td):
 
 
 def test_rlpd_batches_from_chunk_replay_are_half_demo(env, demo):
-    """The harness's 1:1 batch (window_bench.replay.mixed_batch) feeds every critic step."""
-    from window_bench.replay import PROVENANCE_CODES, ChunkReplay, mixed_batch
+    """The harness's 1:1 batch (window_bench.data.replay.mixed_batch) feeds every critic step."""
+    from window_bench.data.replay import PROVENANCE_CODES, ChunkReplay, mixed_batch
 
     demo_buf, online_buf = ChunkReplay(1000, 1, GAMMA, seed=0), ChunkReplay(1000, 1, GAMMA, 1)
     demo_buf.add_episode(demo)
@@ -391,7 +391,7 @@ def test_rlpd_batches_from_chunk_replay_are_half_demo(env, demo):
 def test_pretrain_collect_update_evaluate(env, demo):
     """Offline pretraining on demos, a warm-start episode without updates, online updates on
     half/half batches, then a deterministic evaluation episode: the agent runs end to end."""
-    from window_bench.replay import ChunkReplay, mixed_batch
+    from window_bench.data.replay import ChunkReplay, mixed_batch
 
     mean, std = obs_normalizer([demo])
     agent = HILSERLAgent(OBS_DIM, config=SMALL, seed=1, obs_mean=mean, obs_std=std)

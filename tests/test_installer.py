@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from window_bench.evaluation import evaluate, run_episode, summarize, wilson_interval
-from window_bench.installer import CONTROLLERS, ScriptedInstaller, StraightPush
+from window_bench.harness.evaluation import evaluate, run_episode, summarize, wilson_interval
+from window_bench.installer.scripted import CONTROLLERS, ScriptedInstaller, StraightPush
 
 A, B = "WindowInstall-A-v0", "WindowInstall-B-v0"
 JAM_LABELS = {"entry_wedging", "mid_depth_jamming", "unstable_seating"}

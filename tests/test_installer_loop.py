@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 import window_bench  # noqa: F401  (registers the envs)
-from window_bench import scene as S
-from window_bench.chunks import chunk_transitions
-from window_bench.dataset import load_episodes
-from window_bench.demos import collect_demos, demo_dataset_id, measure_supervision
-from window_bench.effort import takeover_count
-from window_bench.installer import ScriptedInstaller
-from window_bench.operators import OPERATORS, HumanlikeInstaller, OperatorProfile, get_operator
-from window_bench.rollout import Rollout
-from window_bench.supervisor import (ENTRY_DEPTH, FLAT_DIM, FLAT_SLICES, InstallerSupervisor,
+from window_bench.envs import scene as S
+from window_bench.data.chunks import chunk_transitions
+from window_bench.data.dataset import load_episodes
+from window_bench.installer.demos import collect_demos, demo_dataset_id, measure_supervision
+from window_bench.data.effort import takeover_count
+from window_bench.installer.scripted import ScriptedInstaller
+from window_bench.installer.operators import OPERATORS, HumanlikeInstaller, OperatorProfile, get_operator
+from window_bench.installer.rollout import Rollout
+from window_bench.installer.supervisor import (ENTRY_DEPTH, FLAT_DIM, FLAT_SLICES, InstallerSupervisor,
                                      observation_fields)
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import drive_tcp, tcp_action
-from window_bench import scene as S
+from window_bench.envs import scene as S
 
 A, B = "WindowInstall-A-v0", "WindowInstall-B-v0"
 HOLD = np.array([0, 0, 0, 0, 0, 0, 1.0], np.float32)   # zero motion, vacuum on
@@ -366,7 +366,7 @@ def test_joint_velocity_limit_within_steps_A(make_env):
 
 def test_broken_grip_needs_a_fresh_vacuum_command(make_env, monkeypatch):
     # Lower the pull-off limit below the panel's weight: lifting breaks the grip at once.
-    import window_bench.env as E
+    import window_bench.envs.env as E
     env = make_env(A)
     u = env.unwrapped
     env.reset(seed=0)

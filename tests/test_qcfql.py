@@ -15,9 +15,9 @@ import torch
 from tensordict import TensorDict
 
 from baselines.qcfql import BATCH_KEYS, OBS_CLIP, QCFQLAgent, QCFQLConfig
-from window_bench.chunks import chunk_transitions
-from window_bench.replay import PROVENANCE_CODES
-from window_bench.steplog import EpisodeLog
+from window_bench.data.chunks import chunk_transitions
+from window_bench.data.replay import PROVENANCE_CODES
+from window_bench.data.steplog import EpisodeLog
 
 torch.set_num_threads(1)
 

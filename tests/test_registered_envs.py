@@ -13,8 +13,8 @@ import pytest
 import torch
 
 import window_bench
-from window_bench import scene as S
-from window_bench.env import STATE_KEYS
+from window_bench.envs import scene as S
+from window_bench.envs.env import STATE_KEYS
 
 torch.set_num_threads(1)
 
@@ -314,14 +314,14 @@ def test_render_rgb_array(make_env):
     ({"image_size": 8}, "image_size=8 is outside [16, 512]"),
 ])
 def test_bad_constructor_arguments_name_the_value_and_range(kwargs, needle):
-    from window_bench.env import WindowInstallEnv
+    from window_bench.envs.env import WindowInstallEnv
     with pytest.raises(ValueError) as exc:
         WindowInstallEnv(**kwargs)
     assert needle in str(exc.value)
 
 
 def test_clearance_kwarg_resizes_the_opening():
-    from window_bench.env import WindowInstallEnv
+    from window_bench.envs.env import WindowInstallEnv
     import mujoco
     for c in (0.002, 0.005):
         env = WindowInstallEnv(experiment="A", clearance=c)

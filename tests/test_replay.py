@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from window_bench.replay import PROVENANCE_CODES, REPLAY_KEYS, ChunkReplay, mixed_batch
-from window_bench.steplog import EpisodeLog
+from window_bench.data.replay import PROVENANCE_CODES, REPLAY_KEYS, ChunkReplay, mixed_batch
+from window_bench.data.steplog import EpisodeLog
 
 
 def make_log(T, episode_id, end="terminated", provenance="policy"):

@@ -15,8 +15,8 @@ import torch
 
 from baselines.sac import (CHECKPOINT_FILE, SACPolicy, demo_transitions, load_sac, make_sac,
                            save_sac, train_sac)
-from window_bench.installer import ScriptedInstaller
-from window_bench.steplog import EpisodeLog
+from window_bench.installer.scripted import ScriptedInstaller
+from window_bench.data.steplog import EpisodeLog
 
 torch.set_num_threads(1)
 STEPS, EVERY, LEARNING_STARTS, LIMIT = 90, 30, 20, 30

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 import window_bench
-from window_bench import task as T
-from window_bench.controller import solve_ik
-from window_bench.env import WindowInstallEnv
-from window_bench.scene import WALL_NORMAL
+from window_bench.envs import task as T
+from window_bench.envs.controller import solve_ik
+from window_bench.envs.env import WindowInstallEnv
+from window_bench.envs.scene import WALL_NORMAL
 
 HOLD = np.array([0, 0, 0, 0, 0, 0, 1.0], np.float32)
 IDLE = np.zeros(7, np.float32)
@@ -132,7 +132,7 @@ def test_five_mm_off_is_not_accepted(env_id, make_env):
 
 @pytest.mark.parametrize("env_id", ["WindowInstall-B-v0"])
 def test_released_panel_rests_on_sill_and_is_not_accepted(env_id, make_env):
-    # Documented in window_bench.task: a released panel drops the full clearance onto the
+    # Documented in window_bench.envs.task: a released panel drops the full clearance onto the
     # sill (2 mm low), which misses the < 2 mm position criterion; the robot must hold it.
     env = make_env(env_id)
     _release_if_held(env)

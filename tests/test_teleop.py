@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 import torch
 
-from window_bench.dataset import load_episodes
-from window_bench.installer import ScriptedInstaller
-from window_bench.teleop import (INSTALL_HINT, DeviceTakeover, KeyboardDevice, SpaceMouseDevice,
+from window_bench.data.dataset import load_episodes
+from window_bench.installer.scripted import ScriptedInstaller
+from window_bench.installer.teleop import (INSTALL_HINT, DeviceTakeover, KeyboardDevice, SpaceMouseDevice,
                                  TeleopDevice, TeleopUnavailable, add_teleop_parser, cmd_teleop,
                                  key_name, legacy_to_z_up, make_device, teleop_dataset_id,
                                  teleop_session)

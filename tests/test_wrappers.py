@@ -4,9 +4,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from window_bench.env import WindowInstallEnv
-from window_bench.installer import RandomPolicy, ScriptedInstaller
-from window_bench.wrappers import AcceptanceSensor, NoisyAcceptance, make_training_env
+from window_bench.envs.env import WindowInstallEnv
+from window_bench.installer.scripted import RandomPolicy, ScriptedInstaller
+from window_bench.envs.wrappers import AcceptanceSensor, NoisyAcceptance, make_training_env
 
 A = "WindowInstall-A-v0"
 HOLD = np.array([0, 0, 0, 0, 0, 0, 1.0], np.float32)     # no motion, vacuum on

@@ -1,7 +1,21 @@
 """window-bench: tolerance-critical robotic window installation in MuJoCo.
 
-Importing the package registers the environments with Gymnasium.
+Importing the package registers the environments with Gymnasium. The package is laid out by
+what each part owns:
+
+* :mod:`window_bench.envs` - the scene, controller, task and the Gymnasium env;
+* :mod:`window_bench.installer` - the scripted installer, operators, takeovers, rollouts,
+  demonstrations and teleoperation;
+* :mod:`window_bench.data` - step logs, chunk transitions, Minari datasets, replay, effort;
+* :mod:`window_bench.harness` - methods and profiles, training runs, evaluation, leaderboard;
+* :mod:`window_bench.cli` - the ``bench`` command on top.
+
+The names users import most (``WindowInstallEnv``, ``ScriptedInstaller``, ``Run``, ...) are
+available here too; they are loaded on first use so that ``import window_bench`` stays light.
 """
+
+from importlib import import_module
+
 
 from gymnasium.envs.registration import register, registry
 
@@ -18,7 +32,7 @@ def _register() -> list[str]:
         for suffix, (w, h) in variants.items():
             env_id = f"WindowInstall-{exp}{suffix}-v0"
             if env_id not in registry:
-                register(id=env_id, entry_point="window_bench.env:WindowInstallEnv",
+                register(id=env_id, entry_point="window_bench.envs.env:WindowInstallEnv",
                          max_episode_steps=600,
                          kwargs={"experiment": exp, "panel_width": w, "panel_height": h})
             ids.append(env_id)
@@ -26,3 +40,28 @@ def _register() -> list[str]:
 
 
 ENV_IDS = tuple(_register())
+
+
+_EXPORTS = {
+    "WindowInstallEnv": "window_bench.envs.env",
+    "ScriptedInstaller": "window_bench.installer.scripted",
+    "StraightPush": "window_bench.installer.scripted",
+    "RandomPolicy": "window_bench.installer.scripted",
+    "HumanlikeInstaller": "window_bench.installer.operators",
+    "InstallerSupervisor": "window_bench.installer.supervisor",
+    "Rollout": "window_bench.installer.rollout",
+    "EpisodeLog": "window_bench.data.steplog",
+    "ChunkReplay": "window_bench.data.replay",
+    "METHODS": "window_bench.harness.methods",
+    "PROFILES": "window_bench.harness.methods",
+    "Run": "window_bench.harness.run",
+}
+
+
+def __getattr__(name):
+    if name in _EXPORTS:
+        return getattr(import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'window_bench' has no attribute {name!r}")
+
+
+__all__ = ["ENV_IDS", "OOD_PANELS", *_EXPORTS]

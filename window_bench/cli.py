@@ -20,8 +20,8 @@ from pathlib import Path
 
 import window_bench
 
-from .evaluation import atomic_write_text, evaluate, provenance, summarize
-from .installer import CONTROLLERS
+from window_bench.harness.evaluation import atomic_write_text, evaluate, provenance, summarize
+from window_bench.installer.scripted import CONTROLLERS
 
 
 def _env_id(value: str) -> str:
@@ -80,7 +80,7 @@ def _plot(results: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .task import FAILURE_MODES
+    from window_bench.envs.task import FAILURE_MODES
     envs = list(results)
     ctrls = sorted({c for e in envs for c in results[e]}, key=list(CONTROLLERS).index)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
@@ -155,7 +155,7 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_demos(args) -> int:
-    from .demos import collect_demos
+    from window_bench.installer.demos import collect_demos
 
     s = collect_demos(args.env, args.n, args.out, operator=args.operator, seed=args.seed,
                       max_attempts=args.max_attempts, progress=True)
@@ -174,7 +174,7 @@ def cmd_demos(args) -> int:
 
 
 def cmd_supervise(args) -> int:
-    from .demos import measure_supervision
+    from window_bench.installer.demos import measure_supervision
 
     rows = []
     for op in args.operator:
@@ -195,7 +195,7 @@ def cmd_supervise(args) -> int:
 
 
 def cmd_methods(args) -> int:
-    from .methods import PROFILES, methods_table
+    from window_bench.harness.methods import PROFILES, methods_table
 
     print(methods_table())
     print()
@@ -207,7 +207,7 @@ def cmd_methods(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from .harness import Run
+    from window_bench.harness.run import Run
 
     try:
         noise = None
@@ -215,7 +215,7 @@ def cmd_run(args) -> int:
             fp, fn, delay = args.acceptance_noise
             noise = {"false_positive_rate": float(fp), "false_negative_rate": float(fn),
                      "delay_steps": int(delay), "seed": args.seed}
-        from .harness import parse_overrides
+        from window_bench.harness.run import parse_overrides
 
         run = Run(args.method, args.env, args.profile, args.seed, args.out, resume=args.resume,
                   operator=args.operator, demos=args.demos, acceptance_noise=noise,
@@ -237,7 +237,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from .harness import evaluate_policy_file
+    from window_bench.harness.run import evaluate_policy_file
 
     try:
         r = evaluate_policy_file(args.checkpoint, args.episodes, env_id=args.env)
@@ -255,7 +255,7 @@ def cmd_eval(args) -> int:
 
 
 def cmd_leaderboard(args) -> int:
-    from .leaderboard import add_run, build
+    from window_bench.harness.leaderboard import add_run, build
 
     for run_dir in args.add or []:
         try:
@@ -286,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--out", default="runs/calibration", help="results directory (resumes if present)")
     c.set_defaults(func=cmd_calibrate)
-    from .operators import OPERATORS
+    from window_bench.installer.operators import OPERATORS
 
     d = sub.add_parser("demos", help="collect successful human-like demonstrations (Minari)")
     d.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
@@ -308,10 +308,10 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--h", type=_positive, default=10, help="chunk grid of the supervised policy")
     v.add_argument("--out", help="write the rows to this JSON file")
     v.set_defaults(func=cmd_supervise)
-    from .teleop import add_teleop_parser
+    from window_bench.installer.teleop import add_teleop_parser
 
     add_teleop_parser(sub)
-    from .methods import METHODS, PROFILES
+    from window_bench.harness.methods import METHODS, PROFILES
 
     m = sub.add_parser("methods", help="print Table 1 (methods and their components)")
     m.set_defaults(func=cmd_methods)

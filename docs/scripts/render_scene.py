@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 from PIL import Image, ImageDraw, ImageFont  # noqa: E402
 
 import window_bench  # noqa: E402,F401  (registers the ids)
-from window_bench import scene as S  # noqa: E402
+from window_bench.envs import scene as S  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 CX, CZ, WY = S.OPENING_CENTER_X, S.OPENING_CENTER_Z, S.WALL_Y

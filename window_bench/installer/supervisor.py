@@ -9,10 +9,10 @@ A *takeover source* is anything with
 observation and the ``info`` of the previous step (the reset info at ``t = 0``). It returns
 the action to execute instead of the policy's and the takeover kind (``"safety"`` or
 ``"coverage"``), or ``None`` to leave control with the policy. The rollout loop
-(:mod:`window_bench.rollout`) does the rest: it clears the policy's action queue, logs the
+(:mod:`window_bench.installer.rollout`) does the rest: it clears the policy's action queue, logs the
 step with provenance ``"takeover"``, and resumes the policy only at the next fixed chunk
 boundary. Two sources ship: :class:`InstallerSupervisor` (the scripted installer watching
-the same observations as the policy) and ``window_bench.teleop.DeviceTakeover`` (a person
+the same observations as the policy) and ``window_bench.installer.teleop.DeviceTakeover`` (a person
 with a keyboard or SpaceMouse; a takeover whenever the device is active, as in HIL-SERL).
 
 :class:`InstallerSupervisor` watches only cues available at the observation interface, as
@@ -49,10 +49,10 @@ from typing import Protocol
 
 import numpy as np
 
-from . import scene as S
-from .env import STATE_KEYS
-from .installer import ScriptedInstaller
-from .operators import OperatorProfile, OUNoise, get_operator
+from window_bench.envs import scene as S
+from window_bench.envs.env import STATE_KEYS
+from window_bench.installer.scripted import ScriptedInstaller
+from window_bench.installer.operators import OperatorProfile, OUNoise, get_operator
 
 #: Sizes of the state observation fields, in ``STATE_KEYS`` order (the flat layout).
 STATE_SIZES = {"robot0_joint_pos": 7, "robot0_joint_vel": 7, "robot0_eef_pos": 3,
@@ -90,7 +90,7 @@ def observation_fields(obs) -> dict[str, np.ndarray]:
 class InstallerSupervisor:
     """The scripted installer as the takeover source (module docstring).
 
-    ``operator`` is a profile name from :data:`window_bench.operators.OPERATORS` or an
+    ``operator`` is a profile name from :data:`window_bench.installer.operators.OPERATORS` or an
     :class:`OperatorProfile`. ``safety`` / ``coverage`` switch the two kinds on and off.
     """
 

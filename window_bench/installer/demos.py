@@ -23,12 +23,12 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from .dataset import load_episodes, save_episodes
-from .effort import effort_minutes, takeover_count
-from .evaluation import atomic_write_text, provenance
-from .operators import HumanlikeInstaller, get_operator
-from .rollout import Rollout
-from .steplog import STEP_DT, EpisodeLog
+from window_bench.data.dataset import load_episodes, save_episodes
+from window_bench.data.effort import effort_minutes, takeover_count
+from window_bench.harness.evaluation import atomic_write_text, provenance
+from window_bench.installer.operators import HumanlikeInstaller, get_operator
+from window_bench.installer.rollout import Rollout
+from window_bench.data.steplog import STEP_DT, EpisodeLog
 
 
 def demo_dataset_id(env_id: str, operator: str) -> str:
@@ -147,8 +147,8 @@ def measure_supervision(env_id: str, controller: str, operator: str, episodes: i
     """An operator profile supervising a reference controller: takeovers and minutes."""
     from tqdm import tqdm
 
-    from .installer import CONTROLLERS
-    from .supervisor import InstallerSupervisor
+    from window_bench.installer.scripted import CONTROLLERS
+    from window_bench.installer.supervisor import InstallerSupervisor
 
     if controller not in CONTROLLERS:
         raise ValueError(f"unknown controller {controller!r}; choose from {sorted(CONTROLLERS)}")

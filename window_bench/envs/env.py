@@ -13,9 +13,9 @@ import numpy as np
 import gymnasium as gym
 from gymnasium import spaces
 
-from . import scene as S
-from .controller import OSC, OSCGains, solve_ik
-from .task import StageTracker, acceptance
+from window_bench.envs import scene as S
+from window_bench.envs.controller import OSC, OSCGains, solve_ik
+from window_bench.envs.task import StageTracker, acceptance
 
 POS_SCALE = 0.025         # m per unit action (Appendix)
 ROT_SCALE = 0.0873        # rad per unit action (5 deg)
@@ -117,7 +117,7 @@ class WindowInstallEnv(gym.Env):
     ``failure_mode`` labels a panel that is not accepted now as if it had never been
     (``""`` while it is accepted): a panel disturbed after acceptance is typically
     ``unstable_seating``, a released one ``suction_lost``. This mode exists for
-    ``window_bench.wrappers.NoisyAcceptance``, which decides reward and termination from a
+    ``window_bench.envs.wrappers.NoisyAcceptance``, which decides reward and termination from a
     noisy acceptance sensor; it sets the attribute ``terminate_on_acceptance`` itself.
     """
 

@@ -27,7 +27,7 @@ import numbers
 
 import numpy as np
 
-from .steplog import EpisodeLog
+from window_bench.data.steplog import EpisodeLog
 
 #: Keys of the dict returned by :func:`chunk_transitions`, in order.
 CHUNK_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount", "terminal",

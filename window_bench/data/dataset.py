@@ -1,6 +1,6 @@
 """Storage of step logs as Minari datasets (HDF5), and a validating loader back into numpy.
 
-:func:`save_episodes` writes a list of :class:`~window_bench.steplog.EpisodeLog` with
+:func:`save_episodes` writes a list of :class:`~window_bench.data.steplog.EpisodeLog` with
 ``minari.create_dataset_from_buffers``, so ``minari.load_dataset(dataset_id)`` reads what we
 write; :func:`load_episodes` reads it back into ``EpisodeLog`` objects and validates it, so a
 corrupt or truncated file gives a clear ``ValueError`` instead of a crash deep inside an agent.
@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from window_bench.steplog import (ACTION_DIM, PROVENANCES, STAGE_FLAGS, STEP_DT, TAKEOVER_KINDS,
+from window_bench.data.steplog import (ACTION_DIM, PROVENANCES, STAGE_FLAGS, STEP_DT, TAKEOVER_KINDS,
                                   EpisodeLog)
 
 #: Version of the on-disk layout described in the module docstring (2: chunk grid, stage

@@ -3,7 +3,7 @@
 The paper's Section 5 notes that on a real site the acceptance signal is itself noisy: an
 installer or a sensor signs off late, misses a seated panel, or signs off on one that is not
 seated. ``NoisyAcceptance`` gives the learner that signal. The simulator still computes the
-true acceptance (``window_bench.task.acceptance``) on every step; the wrapper passes it
+true acceptance (``window_bench.envs.task.acceptance``) on every step; the wrapper passes it
 through a sensor model and lets the *sensor* decide the reward and the end of the episode.
 
 Sensor model (``AcceptanceSensor``), one reading per env step:

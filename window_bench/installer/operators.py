@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .installer import ENGAGE, RELEASE, ScriptedInstaller
+from window_bench.installer.scripted import ENGAGE, RELEASE, ScriptedInstaller
 
 
 @dataclass(frozen=True)

@@ -22,9 +22,9 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from .installer import CONTROLLERS
-from .scene import TORQUE_LIMITS
-from .task import FAILURE_MODES
+from window_bench.installer.scripted import CONTROLLERS
+from window_bench.envs.scene import TORQUE_LIMITS
+from window_bench.envs.task import FAILURE_MODES
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -56,7 +56,7 @@ def git_commit() -> str:
 def provenance() -> dict:
     import mujoco
 
-    from . import __version__
+    from window_bench import __version__
     return {
         "window_bench": __version__, "mujoco": mujoco.__version__, "numpy": np.__version__,
         "gymnasium": gym.__version__, "python": platform.python_version(),

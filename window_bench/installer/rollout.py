@@ -6,7 +6,7 @@ interleave gradient updates with environment steps. It implements the paper's co
 
 * the policy proposes a chunk of ``h`` actions only when its action queue is empty, which is
   on the fixed grid ``t = k*h``; the chunk runs open loop;
-* a takeover source (:mod:`window_bench.supervisor`) may override any step; it clears the
+* a takeover source (:mod:`window_bench.installer.supervisor`) may override any step; it clears the
   queue. When it hands back mid-chunk, the operator holds the robot still (zero motion, the
   vacuum as last commanded) until the next grid boundary, still logged as takeover; the
   policy then proposes a fresh chunk from the observation at that boundary;
@@ -24,7 +24,7 @@ from collections import deque
 
 import numpy as np
 
-from .steplog import ACTION_DIM, STAGE_FLAGS, EpisodeLog
+from window_bench.data.steplog import ACTION_DIM, STAGE_FLAGS, EpisodeLog
 
 PROVENANCE_OF_POLICY = ("demo", "policy")
 

@@ -19,7 +19,7 @@ import mujoco
 import numba
 import numpy as np
 
-from .scene import MAX_JOINT_VELOCITY, PHYSICS_PER_CONTROL, TORQUE_LIMITS
+from window_bench.envs.scene import MAX_JOINT_VELOCITY, PHYSICS_PER_CONTROL, TORQUE_LIMITS
 
 
 @dataclass(frozen=True)

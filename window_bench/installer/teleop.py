@@ -1,15 +1,15 @@
 """Human teleoperation: input devices, demonstration recording and the human takeover source.
 
 A person drives the shared 7-D action interface (6-D TCP increment in the current TCP frame
-+ vacuum, :class:`~window_bench.env.WindowInstallEnv`) with a keyboard (``pynput``) or a
++ vacuum, :class:`~window_bench.envs.env.WindowInstallEnv`) with a keyboard (``pynput``) or a
 3Dconnexion SpaceMouse (``pyspacemouse``), watching the scene in the MuJoCo viewer. The same
 device serves two purposes:
 
 * **demonstrations** - :func:`teleop_session` (``bench teleop``) runs episodes at 10 Hz and
-  records each one as an :class:`~window_bench.steplog.EpisodeLog` with provenance
-  ``"demo"``, saved as a Minari dataset by :func:`window_bench.dataset.save_episodes`;
+  records each one as an :class:`~window_bench.data.steplog.EpisodeLog` with provenance
+  ``"demo"``, saved as a Minari dataset by :func:`window_bench.data.dataset.save_episodes`;
 * **takeovers during training** - :class:`DeviceTakeover` is a takeover source for the
-  rollout loop (:mod:`window_bench.supervisor`): a binary takeover on every step on which the
+  rollout loop (:mod:`window_bench.installer.supervisor`): a binary takeover on every step on which the
   device is active, as in HIL-SERL.
 
 Devices share one interface, :class:`TeleopDevice`: ``start()`` / ``stop()`` open and close
@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .steplog import ACTION_DIM, STAGE_FLAGS, STEP_DT, TAKEOVER_KINDS, EpisodeLog
+from window_bench.data.steplog import ACTION_DIM, STAGE_FLAGS, STEP_DT, TAKEOVER_KINDS, EpisodeLog
 
 #: How to install the optional device libraries.
 INSTALL_HINT = 'pip install "window-bench[teleop]"'
@@ -534,7 +534,7 @@ def make_device(name: str, **kwargs) -> TeleopDevice:
 class DeviceTakeover:
     """A person with a device as the takeover source during training (HIL-SERL style).
 
-    Implements the takeover-source protocol of :mod:`window_bench.supervisor`: once per
+    Implements the takeover-source protocol of :mod:`window_bench.installer.supervisor`: once per
     10 Hz step, before the action executes, :meth:`intervene` returns
     ``(device.action(), kind)`` while the device is active and ``None`` otherwise (a binary
     takeover: the operator's action replaces the policy's entirely). While the device is
@@ -677,7 +677,7 @@ class _Pacer:
 
 def _load_existing(dataset_id, env_id, record_dir) -> tuple[list[EpisodeLog], list]:
     """Episodes and session records already in ``record_dir`` (appending), or empty."""
-    from .dataset import load_episodes
+    from window_bench.data.dataset import load_episodes
 
     path = Path(record_dir) / dataset_id
     if not path.exists():
@@ -742,8 +742,8 @@ def teleop_session(env_id: str, device: TeleopDevice, record_dir: str | os.PathL
     import gymnasium as gym
 
     import window_bench
-    from .dataset import save_episodes
-    from .evaluation import provenance as run_provenance
+    from window_bench.data.dataset import save_episodes
+    from window_bench.harness.evaluation import provenance as run_provenance
 
     if env_id not in window_bench.ENV_IDS:
         raise ValueError(f"env {env_id!r} is not allowed; registered: {window_bench.ENV_IDS}")

@@ -1,6 +1,6 @@
 """The matched-budget harness: ``bench run --method NAME`` (paper Sections 3.4-3.6, 4.2).
 
-One run = one method on one env with one seed and one profile (:mod:`window_bench.methods`):
+One run = one method on one env with one seed and one profile (:mod:`window_bench.harness.methods`):
 
 * **Stage I - offline pretraining** on D_demo (``profile.offline_steps`` gradient steps);
 * **Stage II - warm start**: the pretrained policy collects ``profile.warm_steps``
@@ -42,11 +42,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from .evaluation import atomic_write, atomic_write_text, provenance, wilson_interval
-from .methods import Method, Profile, get_method, get_profile
-from .rollout import Rollout
-from .steplog import STEP_DT
-from .task import FAILURE_MODES
+from window_bench.harness.evaluation import atomic_write, atomic_write_text, provenance, wilson_interval
+from window_bench.harness.methods import Method, Profile, get_method, get_profile
+from window_bench.installer.rollout import Rollout
+from window_bench.data.steplog import STEP_DT
+from window_bench.envs.task import FAILURE_MODES
 
 RESULTS_SCHEMA = 1
 STEPS_PER_HOUR = 36_000            # 10 Hz
@@ -272,7 +272,7 @@ class Evaluator:
 
 
 def _replay_from_state(sd: dict):
-    from .replay import ChunkReplay
+    from window_bench.data.replay import ChunkReplay
 
     rb = ChunkReplay(sd["capacity"], sd["h"], sd["gamma"], seed=sd["seed"])
     rb.load_state_dict(sd)
@@ -345,12 +345,12 @@ class Run:
 
         if env_id not in window_bench.ENV_IDS:
             raise ValueError(f"unknown env {env_id!r}; registered: {', '.join(window_bench.ENV_IDS)}")
-        from .operators import get_operator
+        from window_bench.installer.operators import get_operator
 
         get_operator(operator)
         self.env_id, self.seed, self.operator = env_id, int(seed), operator
         if acceptance_noise is not None:
-            from .wrappers import AcceptanceSensor
+            from window_bench.envs.wrappers import AcceptanceSensor
 
             AcceptanceSensor(**acceptance_noise)     # validates the rates and the delay
         self.acceptance_noise = acceptance_noise
@@ -371,7 +371,7 @@ class Run:
 
     # ------------------------------------------------------------------ setup
     def _demos(self):
-        from .demos import collect_demos, load_demos
+        from window_bench.installer.demos import collect_demos, load_demos
 
         try:
             eps = load_demos(self.demos_root, self.env_id, self.operator)
@@ -386,7 +386,7 @@ class Run:
         return eps[: self.profile.n_demos]
 
     def _fresh(self) -> dict:
-        from .replay import ChunkReplay
+        from window_bench.data.replay import ChunkReplay
 
         torch.manual_seed(self.seed)
         demos = self._demos()
@@ -458,7 +458,7 @@ class Run:
         self.c["stage"] = "evaluate0"
 
     def _batch(self):
-        from .replay import mixed_batch
+        from window_bench.data.replay import mixed_batch
 
         return mixed_batch(self.demo_rb, self.online_rb, self.profile.batch_size, 0.5)
 
@@ -528,7 +528,7 @@ class Run:
             tb.flush()
 
     def _train_episode_row(self, log) -> dict:
-        from .effort import takeover_count
+        from window_bench.data.effort import takeover_count
 
         return {"steps": log.T, "success": bool(log.terminated[-1]),
                 "takeover_steps": int((log.provenance == "takeover").sum()),
@@ -538,7 +538,7 @@ class Run:
     def train(self) -> dict:
         from tqdm import tqdm
 
-        from .supervisor import InstallerSupervisor
+        from window_bench.installer.supervisor import InstallerSupervisor
 
         torch.set_num_threads(1)
         self._t0 = self._last_save = time.perf_counter()
@@ -580,7 +580,7 @@ class Run:
         from tqdm import tqdm
 
         m, p = self.method, self.profile
-        from .wrappers import make_training_env
+        from window_bench.envs.wrappers import make_training_env
 
         # Training may see a noisy acceptance sensor; evaluation always uses true acceptance.
         env = make_training_env(self.env_id, self.acceptance_noise, obs_mode="flat",
@@ -642,7 +642,7 @@ class Run:
         """SAC as is: SB3 owns the loop; the harness evaluates at its checkpoints."""
         from baselines.sac import SACPolicy, load_sac, make_sac, save_sac, train_sac
 
-        from .wrappers import make_training_env
+        from window_bench.envs.wrappers import make_training_env
 
         m, p = self.method, self.profile
         env = _EpisodeRecorder(make_training_env(self.env_id, self.acceptance_noise,

@@ -15,9 +15,9 @@ import os
 import shutil
 from pathlib import Path
 
-from .evaluation import atomic_write_text
-from .harness import RESULTS_SCHEMA
-from .methods import METHODS
+from window_bench.harness.evaluation import atomic_write_text
+from window_bench.harness.run import RESULTS_SCHEMA
+from window_bench.harness.methods import METHODS
 
 RUN_FILES = ("results.json", "checkpoints.csv", "learning_curve.png")
 

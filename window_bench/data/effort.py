@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .steplog import STEP_DT, EpisodeLog
+from window_bench.data.steplog import STEP_DT, EpisodeLog
 
 RATE_WINDOW = 20   # episodes, as in the paper and HIL-SERL
 

@@ -5,7 +5,7 @@ Section 3.2 of the paper records interaction at the 10 Hz environment step as
 provenance: a teleoperated demonstration, the policy, or an installer takeover. All learning
 quantities (chunk transitions, Bellman backups, intervention statistics) are defined on this
 step index. :class:`EpisodeLog` holds one complete episode in that form; chunked transitions
-(Eq. 4) are built from it by :func:`window_bench.chunks.chunk_transitions`.
+(Eq. 4) are built from it by :func:`window_bench.data.chunks.chunk_transitions`.
 
 Conventions:
 

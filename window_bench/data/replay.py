@@ -1,7 +1,7 @@
 """Replay of chunk transitions on TorchRL components, and the 1:1 demo/online batch.
 
 A :class:`ChunkReplay` holds the chunk transitions (paper Eq. 4) of whole episodes, built by
-:func:`window_bench.chunks.chunk_transitions` on the paper's FIXED grid ``t = k*h``. The
+:func:`window_bench.data.chunks.chunk_transitions` on the paper's FIXED grid ``t = k*h``. The
 reference implementation (``qc``) instead samples a window start uniformly at any step and
 masks windows that cross an episode end; we follow the paper: every stored window starts on
 the grid, so a takeover never shifts it (Section 3.2). Windows cut short by the time limit
@@ -37,8 +37,8 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, RandomSampler, ReplayBuffer, RoundRobinWriter
 
-from .chunks import _check_args, chunk_transitions
-from .steplog import EpisodeLog
+from window_bench.data.chunks import _check_args, chunk_transitions
+from window_bench.data.steplog import EpisodeLog
 
 #: ``provenance_mix`` string -> stored ``provenance_code`` (0 marks a padded step).
 PROVENANCE_CODES = {"": 0, "demo": 1, "policy": 2, "takeover": 3}

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import scene as S
-from .env import (POS_SCALE, ROT_SCALE, VACUUM_HOLD_MOMENT, WindowInstallEnv, mat_to_rotvec,
+from window_bench.envs import scene as S
+from window_bench.envs.env import (POS_SCALE, ROT_SCALE, VACUUM_HOLD_MOMENT, WindowInstallEnv, mat_to_rotvec,
                   rotvec_to_mat)
 
 ENGAGE, RELEASE = 1.0, -1.0
