@@ -12,9 +12,9 @@ import json
 import math
 import os
 import platform
+import secrets
 import subprocess
 import sys
-import tempfile
 import time
 from collections import Counter
 from pathlib import Path
@@ -70,10 +70,12 @@ def provenance() -> dict:
 
 def atomic_write(path: str | os.PathLike, write, binary: bool = True) -> None:
     """``write(fileobj)`` into a temporary file next to ``path``, fsync, then rename it into
-    place: readers see the old file or the new one, never half of one."""
+    place: readers see the old file or the new one, never half of one. The file gets the
+    mode the user's umask gives a new file (``mkstemp`` would make it 0600)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(fd, "wb" if binary else "w") as f:
             write(f)
