@@ -14,10 +14,15 @@ the learner and two rules the harness applies:
   batch from the demo buffer (``window_bench.data.replay.mixed_batch`` does the same for two
   :class:`~window_bench.data.replay.ChunkReplay` buffers).
 
-Defaults follow HIL-SERL's learner (``serl_launcher`` ``SACAgent`` as configured by
-``make_sac_pixel_agent``): 2 critics with LayerNorm and tanh activations, 256x256, target =
-min over both, no entropy backup, temperature initialised at 0.01, target entropy
-``-|A|/2``, critic-to-actor ratio 2. RLPD's variant (10 critics, target = min over 2 members
+Defaults follow HIL-SERL's learner for a single arm with a learnt gripper
+(``serl_launcher`` ``SACAgentHybridSingleArm`` as configured by
+``make_sac_pixel_agent_hybrid_single_arm``): 2 critics with LayerNorm and tanh activations,
+256x256, target = min over both, no entropy backup, temperature initialised at 0.01, target
+entropy ``-|A|/2``, critic-to-actor ratio 2; the actor and the critics cover the 6 pose
+dimensions and a separate grasp critic (a DQN head over the vacuum commands {release, hold},
+double-DQN target, Polyak target network, trained with every critic step) chooses the
+vacuum by argmax. ``vacuum_head="gaussian"`` keeps the vacuum as a 7th Gaussian dimension
+(the earlier form of this baseline). Normalised observations are clipped to +-10 (QC-FQL). RLPD's variant (10 critics, target = min over 2 members
 drawn without replacement, ReLU, entropy backup, temperature 1.0) is a configuration:
 :data:`RLPD_CONFIG`. Deviations from HIL-SERL, all disclosed in ``docs/baselines.md``: the
 discount is 0.99 (HIL-SERL's examples use 0.97), the log-std is clipped to [-20, 2] (RLPD;
@@ -51,11 +56,20 @@ from torch import nn
 from torchrl.modules import MLP
 
 from window_bench.data.steplog import PROVENANCES, EpisodeLog
+from window_bench.harness.agent import (Agent, AgentSpec, config_from_plain, load_optimizer_state,
+                                        module_state, optimizer_state, plain, with_overrides)
+from window_bench.envs.env import VACUUM_THRESHOLD
 
 _ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
 #: Batch keys the learner reads (``valid`` is optional and defaults to all True).
 BATCH_KEYS = ("obs", "actions", "reward", "next_obs", "discount", "terminal")
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+#: How the last action dimension (the vacuum) is learnt; see :class:`HILSERLConfig`.
+VACUUM_HEADS = ("discrete", "gaussian")
+#: The discrete head's commands (index -> executed value): release, hold. The environment
+#: engages the vacuum iff the value exceeds ``VACUUM_THRESHOLD``; a stored action maps back
+#: to the command index by the same threshold.
+VACUUM_COMMANDS = (-1.0, 1.0)
 
 
 # --------------------------------------------------------------------------- configuration
@@ -105,6 +119,21 @@ class HILSERLConfig:
     obs_std_floor : float
         Floor on the observation standard deviation used for z-scoring (constant features,
         e.g. the vacuum flag in demonstrations from the rack, would divide by zero).
+    obs_clip : float or None
+        Normalised observations are clipped to ``+-obs_clip`` (QC-FQL's 10): a state never
+        seen in the demonstrations cannot drive the networks arbitrarily far. None: no clip.
+    vacuum_head : {"discrete", "gaussian"}
+        How the vacuum command (the last action dimension) is learnt. ``"discrete"``
+        (HIL-SERL's ``SACAgentHybridSingleArm``): the tanh-Gaussian actor and the critic
+        ensemble cover the pose dimensions only, and a separate grasp critic ``Q_g(s, .)``
+        over the vacuum commands {release, hold} is trained by double DQN and acts by argmax.
+        ``"gaussian"``: the vacuum is one more dimension of the tanh-Gaussian, engaged iff it
+        exceeds :data:`VACUUM_THRESHOLD` (this baseline before the grasp critic; plain SAC
+        for tasks without a vacuum).
+    vacuum_epsilon : float
+        Probability of a uniformly drawn vacuum command when acting stochastically
+        (``act(..., deterministic=False)``); HIL-SERL's agent explores the gripper only
+        through interventions (0).
     """
 
     hidden: tuple[int, ...] = (256, 256)
@@ -126,6 +155,9 @@ class HILSERLConfig:
     batch_size: int = 256
     critic_actor_ratio: int = 2
     obs_std_floor: float = 1e-2
+    obs_clip: float | None = 10.0
+    vacuum_head: str = "discrete"
+    vacuum_epsilon: float = 0.0
 
     @property
     def h(self) -> int:
@@ -167,12 +199,24 @@ class HILSERLConfig:
         if self.target_entropy is not None and not math.isfinite(self.target_entropy):
             raise ValueError(f"target_entropy = {self.target_entropy!r} is not allowed: it "
                              f"must be finite or None")
+        if self.obs_clip is not None and not (isinstance(self.obs_clip, numbers.Real)
+                                              and math.isfinite(self.obs_clip)
+                                              and self.obs_clip > 0):
+            raise ValueError(f"obs_clip = {self.obs_clip!r} is not allowed: it must be a "
+                             f"finite number > 0 or None")
+        if self.vacuum_head not in VACUUM_HEADS:
+            raise ValueError(f"vacuum_head = {self.vacuum_head!r} is not allowed: choose from "
+                             f"{VACUUM_HEADS}")
+        if not (isinstance(self.vacuum_epsilon, numbers.Real)
+                and 0.0 <= self.vacuum_epsilon <= 1.0):
+            raise ValueError(f"vacuum_epsilon = {self.vacuum_epsilon!r} is not allowed: it "
+                             f"must lie in [0, 1]")
 
 
 #: RLPD's learner (Ball et al. 2023) in this module's terms.
 RLPD_CONFIG = HILSERLConfig(activation="relu", actor_layernorm=False, num_critics=10,
                             num_min=2, init_temperature=1.0, backup_entropy=True,
-                            critic_actor_ratio=1)
+                            critic_actor_ratio=1, vacuum_head="gaussian")
 
 
 # --------------------------------------------------------------------------- networks
@@ -230,6 +274,25 @@ class CriticEnsemble(nn.Module):
         x = torch.cat([obs, action], dim=-1)
         # A loop over members measured as fast as a batched (bmm) ensemble at E = 2 and 10.
         return torch.stack([m(x).squeeze(-1) for m in self.members])
+
+
+class GraspCritic(nn.Module):
+    """HIL-SERL's grasp critic: ``Q_g(s, c)`` for every vacuum command ``c`` at once, one
+    MLP with the critics' hidden layers (HIL-SERL: 256 x 256, tanh, LayerNorm) and one
+    output per command; forward returns (B, len(VACUUM_COMMANDS))."""
+
+    def __init__(self, obs_dim: int, cfg: HILSERLConfig):
+        super().__init__()
+        self.net = _mlp(obs_dim, len(VACUUM_COMMANDS), cfg, cfg.critic_layernorm)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.net(obs)
+
+
+def vacuum_command_index(vacuum: torch.Tensor) -> torch.Tensor:
+    """Index into :data:`VACUUM_COMMANDS` of executed vacuum values: 1 (hold) iff the value
+    exceeds ``VACUUM_THRESHOLD``, as the environment decides, else 0 (release)."""
+    return (vacuum > VACUUM_THRESHOLD).long()
 
 
 # --------------------------------------------------------------------------- storage rules
@@ -325,7 +388,7 @@ def obs_normalizer(episodes: list[EpisodeLog]) -> tuple[np.ndarray, np.ndarray]:
 
 
 # --------------------------------------------------------------------------- the agent
-class HILSERLAgent:
+class HILSERLAgent(Agent):
     """Soft actor-critic learner of HIL-SERL / RLPD with ``h = 1`` (one-step "chunks").
 
     Parameters
@@ -346,6 +409,45 @@ class HILSERLAgent:
     """
 
     h = 1
+    takeovers_to_demo = True   # HIL-SERL: intervened transitions are demonstrations too
+    #: The modules ``act(obs, deterministic=True)`` reads (those that exist in this agent).
+    ACTING_MODULES = ("actor", "grasp_critic")
+
+    # ------------------------------------------------------------------ the harness's interface
+    @classmethod
+    def create(cls, spec: AgentSpec) -> "HILSERLAgent":
+        cfg = with_overrides(HILSERLConfig(hidden=tuple(spec.profile.hidden),
+                                           batch_size=spec.profile.batch_size), spec.overrides)
+        return cls(spec.obs_dim, spec.action_dim, cfg, seed=spec.seed, obs_mean=spec.obs_mean,
+                   obs_std=spec.obs_std)
+
+    @property
+    def gamma(self) -> float:
+        return self.config.gamma
+
+    def learn(self, sample) -> tuple[dict[str, float], int]:
+        """One :meth:`update`: ``critic_actor_ratio`` critic steps, each on a fresh batch."""
+        return self.update(sample), self.config.critic_actor_ratio
+
+    def policy_state_dict(self) -> dict:
+        """The acting networks (:data:`ACTING_MODULES`), the normaliser, sizes and config."""
+        return {"config": plain(dataclasses.asdict(self.config)), "obs_dim": self.obs_dim,
+                "action_dim": self.action_dim, "seed": self.seed,
+                "obs_mean": self.obs_mean.clone(), "obs_std": self.obs_std.clone(),
+                **{name: module_state(getattr(self, name)) for name in self.ACTING_MODULES
+                   if getattr(self, name, None) is not None}}
+
+    @classmethod
+    def from_policy_state_dict(cls, state: dict) -> "HILSERLAgent":
+        """An agent that acts like the one :meth:`policy_state_dict` came from (its critics
+        keep their initial weights: for acting only)."""
+        agent = cls(state["obs_dim"], state["action_dim"],
+                    config_from_plain(HILSERLConfig, _state_config(state)), seed=state["seed"])
+        agent.obs_mean, agent.obs_std = state["obs_mean"].clone(), state["obs_std"].clone()
+        for name in cls.ACTING_MODULES:
+            if getattr(agent, name, None) is not None:
+                getattr(agent, name).load_state_dict(state[name])
+        return agent
 
     def __init__(self, obs_dim: int, action_dim: int = 7,
                  config: HILSERLConfig = HILSERLConfig(), seed: int = 0,
@@ -360,15 +462,29 @@ class HILSERLAgent:
                                else float(config.target_entropy))
         self.obs_mean, self.obs_std = self._check_stats(obs_mean, obs_std)
 
+        self.discrete_vacuum = config.vacuum_head == "discrete"
+        if self.discrete_vacuum and action_dim < 2:
+            raise ValueError(f"action_dim = {action_dim} is not allowed with vacuum_head = "
+                             f"'discrete': it needs at least one pose dimension and the vacuum")
+        # With the grasp critic, the actor and the critic ensemble see the pose dimensions
+        # only (HIL-SERL's critic takes actions[..., :-1]).
+        self.pose_dim = action_dim - 1 if self.discrete_vacuum else action_dim
+
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.actor = TanhGaussianActor(obs_dim, action_dim, config)
-            self.critic = CriticEnsemble(obs_dim, action_dim, config)
+            self.actor = TanhGaussianActor(obs_dim, self.pose_dim, config)
+            self.critic = CriticEnsemble(obs_dim, self.pose_dim, config)
+            self.grasp_critic = GraspCritic(obs_dim, config) if self.discrete_vacuum else None
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self.target_grasp_critic = (copy.deepcopy(self.grasp_critic).requires_grad_(False)
+                                    if self.discrete_vacuum else None)
         self.log_alpha = nn.Parameter(torch.tensor(math.log(config.init_temperature)))
 
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=config.actor_lr)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
+        self.grasp_critic_opt = (torch.optim.Adam(self.grasp_critic.parameters(),
+                                                  lr=config.critic_lr)
+                                 if self.discrete_vacuum else None)
         self.temperature_opt = torch.optim.Adam([self.log_alpha], lr=config.temperature_lr)
         self._act_rng = torch.Generator().manual_seed(2 * seed)
         self._update_rng = torch.Generator().manual_seed(2 * seed + 1)
@@ -402,13 +518,17 @@ class HILSERLAgent:
         return float(self.log_alpha.detach().exp())
 
     def _normalize(self, obs: torch.Tensor) -> torch.Tensor:
-        return (obs - self.obs_mean) / self.obs_std
+        z = (obs - self.obs_mean) / self.obs_std
+        clip = self.config.obs_clip
+        return z if clip is None else z.clamp(-clip, clip)
 
     # ------------------------------------------------------------------ acting
     def act(self, obs, deterministic: bool = False) -> np.ndarray:
         """Action chunk(s) of length 1: (1, A) for one observation (obs_dim,), (B, 1, A) for
         a batch (B, obs_dim). ``deterministic`` returns ``tanh(mean)``; otherwise a sample
-        drawn with the agent's acting generator. float32, in [-1, 1]."""
+        drawn with the agent's acting generator. float32, in [-1, 1]. With the discrete
+        vacuum head the last entry is the :data:`VACUUM_COMMANDS` value of
+        :meth:`vacuum_command` (argmax of the grasp critic; epsilon-greedy when sampling)."""
         x = np.ascontiguousarray(obs, dtype=np.float32)
         if x.ndim not in (1, 2) or x.shape[-1] != self.obs_dim:
             raise ValueError(f"obs has shape {x.shape}; expected ({self.obs_dim},) or "
@@ -416,8 +536,33 @@ class HILSERLAgent:
         with torch.no_grad():
             o = self._normalize(torch.from_numpy(x).reshape(-1, self.obs_dim))
             a = self.actor.mode(o) if deterministic else self.actor.sample(o, self._act_rng)[0]
+            if self.discrete_vacuum:
+                values = torch.tensor(VACUUM_COMMANDS, dtype=a.dtype)
+                cmd = self._vacuum_command(o, deterministic)
+                a = torch.cat([a, values[cmd][:, None]], dim=-1)
         a = a.numpy().astype(np.float32)
         return a.reshape(1, self.action_dim) if x.ndim == 1 else a[:, None, :]
+
+    def vacuum_command(self, obs, deterministic: bool = True) -> np.ndarray:
+        """Indices into :data:`VACUUM_COMMANDS` (0 release, 1 hold) for raw observations
+        (obs_dim,) or (B, obs_dim): ``argmax_c Q_g(s, c)``, or with probability
+        ``vacuum_epsilon`` a uniform command when not ``deterministic``. Discrete head only."""
+        if not self.discrete_vacuum:
+            raise ValueError("vacuum_command needs vacuum_head = 'discrete'; this agent has "
+                             f"{self.config.vacuum_head!r}")
+        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
+        with torch.no_grad():
+            return self._vacuum_command(self._normalize(x), deterministic).numpy()
+
+    def _vacuum_command(self, o: torch.Tensor, deterministic: bool) -> torch.Tensor:
+        cmd = self.grasp_critic(o).argmax(dim=-1)
+        eps = self.config.vacuum_epsilon
+        if not deterministic and eps > 0:
+            # Draws only when exploring, so eps = 0 leaves the acting stream as without it.
+            explore = torch.rand(cmd.shape, generator=self._act_rng) < eps
+            random_cmd = torch.randint(len(VACUUM_COMMANDS), cmd.shape, generator=self._act_rng)
+            cmd = torch.where(explore, random_cmd, cmd)
+        return cmd
 
     # ------------------------------------------------------------------ learning
     def _prepare(self, batch: TensorDict) -> dict[str, torch.Tensor]:
@@ -448,7 +593,8 @@ class HILSERLAgent:
         valid = batch["valid"] if "valid" in batch.keys() else torch.ones(B, dtype=torch.bool)
         return {"obs": self._normalize(batch["obs"].to(torch.float32)),
                 "next_obs": self._normalize(batch["next_obs"].to(torch.float32)),
-                "actions": actions, "discount": discount,
+                "actions": actions[:, :self.pose_dim],
+                "vacuum_cmd": vacuum_command_index(actions[:, -1]), "discount": discount,
                 "reward": batch["reward"].to(torch.float32).reshape(B),
                 "terminal": batch["terminal"].to(torch.float32).reshape(B),
                 "valid": valid.to(torch.float32).reshape(B)}
@@ -473,24 +619,56 @@ class HILSERLAgent:
             next_v = next_v - self.log_alpha.exp() * next_log_prob
         return b["reward"] + b["discount"] * (1.0 - b["terminal"]) * next_v
 
+    def grasp_td_target(self, batch: TensorDict) -> torch.Tensor:
+        """The grasp critic's double-DQN target ``y_g`` (B,), with the current networks:
+        ``y_g = r + discount * (1 - terminal) * Qbar_g(s', argmax_c Q_g(s', c))``: the online
+        grasp critic picks the next command, the target grasp critic values it (HIL-SERL's
+        ``grasp_critic_loss_fn``; its gripper-toggle penalty is not part of this task's
+        reward). Discrete head only."""
+        if not self.discrete_vacuum:
+            raise ValueError("grasp_td_target needs vacuum_head = 'discrete'")
+        return self._grasp_td_target(self._prepare(batch))
+
+    @torch.no_grad()
+    def _grasp_td_target(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
+        best = self.grasp_critic(b["next_obs"]).argmax(dim=-1, keepdim=True)
+        next_q = self.target_grasp_critic(b["next_obs"]).gather(-1, best).squeeze(-1)
+        return b["reward"] + b["discount"] * (1.0 - b["terminal"]) * next_q
+
+    def _valid_mean(self, per_row: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        return (per_row * valid).sum() / valid.sum().clamp(min=1.0)
+
     def _critic_step(self, b: dict[str, torch.Tensor]) -> dict[str, float]:
         y = self._td_target(b)
         q = self.critic(b["obs"], b["actions"])  # (E, B)
-        per_row = (q - y).pow(2).mean(dim=0)  # mean over members
-        loss = (per_row * b["valid"]).sum() / b["valid"].sum().clamp(min=1.0)
+        loss = self._valid_mean((q - y).pow(2).mean(dim=0), b["valid"])  # mean over members
         self.critic_opt.zero_grad(set_to_none=True)
         loss.backward()
         self.critic_opt.step()
+        info = {"critic_loss": loss.item(), "q_mean": float(q.detach().mean()),
+                "target_mean": float(y.mean())}
+        if self.discrete_vacuum:  # HIL-SERL updates the grasp critic with every critic step
+            y_g = self._grasp_td_target(b)
+            q_g = self.grasp_critic(b["obs"]).gather(-1, b["vacuum_cmd"][:, None]).squeeze(-1)
+            grasp_loss = self._valid_mean((q_g - y_g).pow(2), b["valid"])
+            self.grasp_critic_opt.zero_grad(set_to_none=True)
+            grasp_loss.backward()
+            self.grasp_critic_opt.step()
+            info.update(grasp_critic_loss=grasp_loss.item(),
+                        grasp_q_mean=float(q_g.detach().mean()))
         self._polyak()
         self.critic_steps += 1
-        return {"critic_loss": loss.item(), "q_mean": float(q.detach().mean()),
-                "target_mean": float(y.mean())}
+        return info
 
     @torch.no_grad()
     def _polyak(self) -> None:
-        online = list(self.critic.parameters()) + list(self.critic.buffers())
-        target = list(self.target_critic.parameters()) + list(self.target_critic.buffers())
-        torch._foreach_lerp_(target, online, self.config.tau)
+        pairs = [(self.critic, self.target_critic)]
+        if self.discrete_vacuum:
+            pairs.append((self.grasp_critic, self.target_grasp_critic))
+        for net, target_net in pairs:
+            online = list(net.parameters()) + list(net.buffers())
+            target = list(target_net.parameters()) + list(target_net.buffers())
+            torch._foreach_lerp_(target, online, self.config.tau)
 
     def _actor_temperature_step(self, b: dict[str, torch.Tensor]) -> dict[str, float]:
         alpha = self.log_alpha.detach().exp()
@@ -529,7 +707,8 @@ class HILSERLAgent:
 
         Returns floats: ``critic_loss`` (mean over the critic steps), ``q_mean``,
         ``target_mean``, ``actor_loss``, ``entropy``, ``temperature_loss``,
-        ``temperature`` (after the step).
+        ``temperature`` (after the step); with the discrete vacuum head also
+        ``grasp_critic_loss`` and ``grasp_q_mean`` (means over the critic steps).
         """
         ratio = self.config.critic_actor_ratio
         if callable(batch) and not isinstance(batch, TensorDict):
@@ -554,26 +733,29 @@ class HILSERLAgent:
         """Everything an exact resume needs: weights, targets, temperature, optimiser
         states, both generators, step counters, the config and the normalisation."""
         return {
-            "config": dataclasses.asdict(self.config), "obs_dim": self.obs_dim,
+            "config": plain(dataclasses.asdict(self.config)), "obs_dim": self.obs_dim,
             "action_dim": self.action_dim, "seed": self.seed,
             "obs_mean": self.obs_mean.clone(), "obs_std": self.obs_std.clone(),
             "actor": copy.deepcopy(self.actor.state_dict()),
             "critic": copy.deepcopy(self.critic.state_dict()),
             "target_critic": copy.deepcopy(self.target_critic.state_dict()),
             "log_alpha": self.log_alpha.detach().clone(),
-            "actor_opt": copy.deepcopy(self.actor_opt.state_dict()),
-            "critic_opt": copy.deepcopy(self.critic_opt.state_dict()),
-            "temperature_opt": copy.deepcopy(self.temperature_opt.state_dict()),
+            "actor_opt": optimizer_state(self.actor_opt),
+            "critic_opt": optimizer_state(self.critic_opt),
+            "temperature_opt": optimizer_state(self.temperature_opt),
             "act_rng": self._act_rng.get_state(), "update_rng": self._update_rng.get_state(),
             "critic_steps": self.critic_steps, "actor_steps": self.actor_steps,
+            **({"grasp_critic": copy.deepcopy(self.grasp_critic.state_dict()),
+                "target_grasp_critic": copy.deepcopy(self.target_grasp_critic.state_dict()),
+                "grasp_critic_opt": optimizer_state(self.grasp_critic_opt)}
+               if self.discrete_vacuum else {}),
         }
 
     @classmethod
     def from_state_dict(cls, state: dict) -> "HILSERLAgent":
         """A new agent restored from :meth:`state_dict` output (e.g. in an evaluation
         worker)."""
-        names = {f.name for f in dataclasses.fields(HILSERLConfig)}
-        config = HILSERLConfig(**{k: v for k, v in state["config"].items() if k in names})
+        config = config_from_plain(HILSERLConfig, _state_config(state))
         agent = cls(state["obs_dim"], state["action_dim"], config, seed=state["seed"])
         agent.load_state_dict(state)
         return agent
@@ -581,7 +763,7 @@ class HILSERLAgent:
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict`. The config and the sizes must match this agent's."""
         mine = dataclasses.asdict(self.config)
-        theirs = dict(state["config"])
+        theirs = _state_config(state)
         theirs["hidden"] = tuple(theirs["hidden"])
         if theirs != mine:
             diff = sorted(k for k in mine if mine[k] != theirs.get(k))
@@ -599,9 +781,20 @@ class HILSERLAgent:
         self.target_critic.load_state_dict(state["target_critic"])
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
-        self.actor_opt.load_state_dict(state["actor_opt"])
-        self.critic_opt.load_state_dict(state["critic_opt"])
-        self.temperature_opt.load_state_dict(state["temperature_opt"])
+        load_optimizer_state(self.actor_opt, state["actor_opt"])
+        load_optimizer_state(self.critic_opt, state["critic_opt"])
+        load_optimizer_state(self.temperature_opt, state["temperature_opt"])
         self._act_rng.set_state(state["act_rng"])
         self._update_rng.set_state(state["update_rng"])
         self.critic_steps, self.actor_steps = state["critic_steps"], state["actor_steps"]
+        if self.discrete_vacuum:
+            self.grasp_critic.load_state_dict(state["grasp_critic"])
+            self.target_grasp_critic.load_state_dict(state["target_grasp_critic"])
+            load_optimizer_state(self.grasp_critic_opt, state["grasp_critic_opt"])
+
+
+def _state_config(state: dict) -> dict:
+    """The config of a :meth:`HILSERLAgent.state_dict`; states saved before the grasp critic
+    and the observation clip were added are what they were: Gaussian vacuum, no clip."""
+    return {"vacuum_head": "gaussian", "obs_clip": None, "vacuum_epsilon": 0.0,
+            **state["config"]}

@@ -13,7 +13,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from baselines.hilserl import (BATCH_KEYS, RLPD_CONFIG, HILSERLAgent, HILSERLConfig,
+from baselines.hilserl import (BATCH_KEYS, RLPD_CONFIG, VACUUM_COMMANDS, HILSERLAgent,
+                               HILSERLConfig,
                                hilserl_buffers_for, obs_normalizer, symmetric_sampler,
                                takeover_segments)
 from window_bench.data.chunks import chunk_transitions
@@ -93,6 +94,9 @@ def params(module):
     ({"gamma": 1.5}, "gamma"),
     ({"init_temperature": 0.0}, "init_temperature"),
     ({"log_std_min": 2.0}, "log_std_min"),
+    ({"vacuum_head": "bernoulli"}, "vacuum_head"),
+    ({"vacuum_epsilon": 1.5}, "vacuum_epsilon"),
+    ({"obs_clip": 0.0}, "obs_clip"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -273,6 +277,115 @@ def test_invalid_rows_do_not_train_the_critic(demo_td):
     assert all(torch.equal(a, b) for a, b in zip(before, params(agent.critic)))
 
 
+# --------------------------------------------------------------------------- vacuum head
+def _constant_outputs(net, values):
+    """Make a network output ``values`` for every input: zero last-layer weights, bias."""
+    with torch.no_grad():
+        last = [m for m in net.modules() if isinstance(m, torch.nn.Linear)][-1]
+        last.weight.zero_()
+        last.bias.copy_(torch.as_tensor(values, dtype=torch.float32))
+
+
+def test_discrete_head_is_the_default_and_splits_the_action():
+    """HIL-SERL's hybrid agent: Gaussian actor and critic ensemble over the 6 pose
+    dimensions, a grasp critic over {release, hold}; 'gaussian' keeps all 7 in the actor."""
+    agent = HILSERLAgent(OBS_DIM, config=SMALL)
+    assert SMALL.vacuum_head == "discrete" and SMALL.obs_clip == 10.0
+    first = lambda net: [m for m in net.modules() if isinstance(m, torch.nn.Linear)][0]  # noqa: E731
+    assert first(agent.critic.members[0]).in_features == OBS_DIM + 6
+    assert [m for m in agent.actor.modules() if isinstance(m, torch.nn.Linear)][-1].out_features == 12
+    assert agent.grasp_critic(torch.zeros(3, OBS_DIM)).shape == (3, len(VACUUM_COMMANDS))
+    assert agent.target_entropy == -3.5   # -|A|/2 over the full 7-d action, as HIL-SERL
+    g = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(32, 32), batch_size=32,
+                                                   vacuum_head="gaussian"))
+    assert first(g.critic.members[0]).in_features == OBS_DIM + 7
+    assert g.grasp_critic is None and "grasp_critic" not in g.state_dict()
+    with pytest.raises(ValueError, match="vacuum_head"):
+        g.vacuum_command(np.zeros(OBS_DIM))
+
+
+def test_grasp_td_target_is_double_dqn():
+    """y_g = r + gamma (1 - terminal) Qbar_g(s', argmax_c Q_g(s', c)): the online grasp
+    critic chooses the command, the target grasp critic values it."""
+    agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(8,), batch_size=2))
+    batch = _two_rows([0.5, 1.0], [False, True])
+    _constant_outputs(agent.target_grasp_critic, [5.0, 2.0])
+    _constant_outputs(agent.grasp_critic, [0.0, 1.0])        # online argmax: hold
+    torch.testing.assert_close(agent.grasp_td_target(batch),
+                               torch.tensor([0.5 + GAMMA * 2.0, 1.0]))
+    _constant_outputs(agent.grasp_critic, [1.0, 0.0])        # online argmax: release
+    torch.testing.assert_close(agent.grasp_td_target(batch),
+                               torch.tensor([0.5 + GAMMA * 5.0, 1.0]))
+
+
+def test_grasp_critic_trains_the_executed_command_only(demo_td):
+    """The grasp loss regresses Q_g(s, c) of the executed command c (hold in the demo, value
+    1.0 > 0.5) to its target; the release output gets no gradient from the loss."""
+    cfg = HILSERLConfig(hidden=(16,), batch_size=32, critic_actor_ratio=1, tau=1.0)
+    agent = HILSERLAgent(OBS_DIM, config=cfg)
+    batch = demo_td[:32]
+    assert torch.all(batch["actions"][:, 0, 6] > 0.5)
+    b = agent._prepare(batch)
+    y = agent._grasp_td_target(b)
+    with torch.no_grad():
+        q = agent.grasp_critic(b["obs"])
+    expected = float(((q[:, 1] - y) ** 2).mean())
+    info = agent.update(batch)
+    assert info["grasp_critic_loss"] == pytest.approx(expected, rel=1e-5)
+    last = [m for m in agent.grasp_critic.modules() if isinstance(m, torch.nn.Linear)][-1]
+    before = HILSERLAgent(OBS_DIM, config=cfg)   # same seed: the initial weights
+    last0 = [m for m in before.grasp_critic.modules() if isinstance(m, torch.nn.Linear)][-1]
+    assert torch.equal(last.weight[0], last0.weight[0]) and torch.equal(last.bias[0], last0.bias[0])
+    assert not torch.equal(last.weight[1], last0.weight[1])
+    # tau = 1: the target grasp critic is a copy after the step (Polyak after every step)
+    for p_, t_ in zip(agent.grasp_critic.parameters(), agent.target_grasp_critic.parameters()):
+        torch.testing.assert_close(p_, t_)
+
+
+def test_vacuum_action_is_argmax_and_epsilon_greedy_when_sampling(demo):
+    obs = np.repeat(demo.observations[:1], 2000, axis=0)
+    agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(16,), batch_size=32,
+                                                       vacuum_epsilon=0.3), seed=1)
+    _constant_outputs(agent.grasp_critic, [1.0, 0.0])
+    assert np.all(agent.act(obs, deterministic=True)[:, 0, 6] == -1.0)    # release
+    _constant_outputs(agent.grasp_critic, [0.0, 1.0])
+    assert np.all(agent.act(obs, deterministic=True)[:, 0, 6] == 1.0)     # hold
+    np.testing.assert_array_equal(agent.vacuum_command(obs[:3]), [1, 1, 1])
+    sampled = agent.act(obs)[:, 0, 6]
+    assert set(np.unique(sampled)) == {-1.0, 1.0}
+    # epsilon 0.3 of uniform commands over 2: release with probability 0.15
+    assert 0.11 < np.mean(sampled == -1.0) < 0.19
+    greedy = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(16,), batch_size=32), seed=1)
+    _constant_outputs(greedy.grasp_critic, [0.0, 1.0])
+    assert np.all(greedy.act(obs)[:, 0, 6] == 1.0)   # HIL-SERL's default: no epsilon
+
+
+def test_normalised_observations_are_clipped():
+    agent = HILSERLAgent(OBS_DIM, config=SMALL, obs_mean=np.zeros(OBS_DIM),
+                         obs_std=np.ones(OBS_DIM))
+    far, edge = np.full(OBS_DIM, 1e6, np.float32), np.full(OBS_DIM, 10.0, np.float32)
+    np.testing.assert_array_equal(agent.act(far, deterministic=True),
+                                  agent.act(edge, deterministic=True))
+    free = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(32, 32), batch_size=32,
+                                                      obs_clip=None),
+                        obs_mean=np.zeros(OBS_DIM), obs_std=np.ones(OBS_DIM))
+    assert not np.array_equal(free.act(far, deterministic=True),
+                              free.act(edge, deterministic=True))
+
+
+def test_states_saved_before_the_grasp_critic_load_as_gaussian():
+    old = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(16,), batch_size=32,
+                                                     vacuum_head="gaussian", obs_clip=None))
+    state = old.state_dict()
+    for key in ("vacuum_head", "obs_clip", "vacuum_epsilon"):
+        del state["config"][key]
+    restored = HILSERLAgent.from_state_dict(state)
+    assert restored.config.vacuum_head == "gaussian" and restored.config.obs_clip is None
+    x = np.ones((3, OBS_DIM), np.float32)
+    np.testing.assert_array_equal(restored.act(x, deterministic=True),
+                                  old.act(x, deterministic=True))
+
+
 # --------------------------------------------------------------------------- checkpoints
 def test_state_dict_round_trip_is_an_exact_resume(demo, demo_td):
     mean, std = obs_normalizer([demo])
@@ -288,8 +401,9 @@ def test_state_dict_round_trip_is_an_exact_resume(demo, demo_td):
     for agent in (a, b):  # identical futures
         agent.info = agent.update(demo_td[40:104])
     assert a.info == b.info
-    for pa, pb in zip(params(a.actor) + params(a.critic) + params(a.target_critic),
-                      params(b.actor) + params(b.critic) + params(b.target_critic)):
+    nets = ("actor", "critic", "target_critic", "grasp_critic", "target_grasp_critic")
+    for pa, pb in zip(sum((params(getattr(a, n)) for n in nets), []),
+                      sum((params(getattr(b, n)) for n in nets), [])):
         assert torch.equal(pa, pb)
     assert a.temperature == b.temperature and a.critic_steps == b.critic_steps == 8
     np.testing.assert_array_equal(a.act(demo.observations[:4]), b.act(demo.observations[:4]))
