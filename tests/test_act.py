@@ -35,9 +35,10 @@ def demos():
 
 @pytest.fixture
 def trained():
-    """A smoke-size agent after a few updates on synthetic episodes."""
+    """A smoke-size agent after a few updates on synthetic episodes, acting in open-loop
+    chunks (the option; ensembling, the default, is tested on its own)."""
     eps = [synthetic_episode(23, 0), synthetic_episode(17, 1)]
-    agent = ACTAgent(OBS_DIM, config=SMOKE, seed=3)
+    agent = ACTAgent(OBS_DIM, config=replace(SMOKE, temporal_ensembling=False), seed=3)
     agent.train_offline(eps, 5)
     return agent, eps
 
@@ -159,7 +160,7 @@ def test_temporal_ensemble_on_a_hand_built_sequence():
 
 def test_agent_with_ensembling_averages_its_own_predictions(trained):
     agent, eps = trained
-    te = ACTAgent(OBS_DIM, config=replace(SMOKE, temporal_ensembling=True), seed=0)
+    te = ACTAgent(OBS_DIM, config=SMOKE, seed=0)   # ensembling: the default
     te.load_state_dict(agent.state_dict())  # inference-only settings may differ
     assert te.h == 1 and agent.h == SMOKE.chunk
     obs_seq = eps[0].observations[:14]
@@ -172,6 +173,39 @@ def test_agent_with_ensembling_averages_its_own_predictions(trained):
         assert np.allclose(a[0], temporal_ensemble(window, 0.01), atol=1e-6)
     te.reset()  # a new episode forgets the old chunks
     assert np.allclose(te.act(obs_seq[5])[0], chunks[5][0], atol=1e-7)
+
+
+def test_ensembling_weights_are_exp_minus_001_i_oldest_first():
+    """ACT's weights w_i = exp(-0.01 i) / sum_j exp(-0.01 j), i = 0 the oldest prediction:
+    k one-hot chunks (chunk j predicts e_j for now) return the weights themselves."""
+    k = 10
+    chunks = []
+    for j in range(k):
+        c = np.zeros((k, k))
+        c[k - 1 - j, j] = 1.0        # chunk j, predicted k-1-j steps ago: its row for now
+        chunks.append(c)
+    w = np.exp(-0.01 * np.arange(k))
+    np.testing.assert_allclose(temporal_ensemble(chunks, 0.01), w / w.sum(), rtol=1e-12)
+    assert ACTConfig().ensemble_coeff == 0.01
+    assert all(c.temporal_ensembling for c in ACT_PROFILES.values())
+
+
+def test_harness_evaluates_act_with_a_query_every_step(monkeypatch):
+    """The harness's ACT (make_agent with the profile's config) has h = 1, and its
+    evaluation worker re-queries the policy at every environment step."""
+    from window_bench.harness.methods import get_method, get_profile
+    from window_bench.harness.run import AgentPolicy, _eval_worker, make_agent
+
+    agent = make_agent(get_method("act"), get_profile("smoke"), OBS_DIM, seed=0)
+    agent.fit_normalizer([synthetic_episode(23, 0)])
+    assert agent.h == 1 and AgentPolicy(agent, deterministic=True).h == 1
+    calls = []
+    real = ACTAgent.predict_chunk
+    monkeypatch.setattr(ACTAgent, "predict_chunk",
+                        lambda self, obs: calls.append(1) or real(self, obs))
+    rows = _eval_worker(("act", agent.state_dict(), "WindowInstall-A-v0", [100_000], 12))
+    assert len(rows) == 1 and not rows[0]["success"]
+    assert len(calls) == 12        # one query per step of the 12-step episode
 
 
 # ----------------------------------------------------------------------------- act / I/O
@@ -228,7 +262,7 @@ def test_state_dict_round_trip_is_exact(trained):
     torch.save(agent.state_dict(), buf)
     buf.seek(0)
     sd = torch.load(buf, weights_only=True)
-    other = ACTAgent(OBS_DIM, config=SMOKE, seed=99)
+    other = ACTAgent(OBS_DIM, config=agent.config, seed=99)
     other.load_state_dict(sd)
     obs = eps[0].observations[7]
     assert np.array_equal(other.act(obs), agent.act(obs))
@@ -242,7 +276,7 @@ def test_state_dict_round_trip_is_exact(trained):
         ACTAgent(OBS_DIM, config=replace(SMOKE, d_model=64)).load_state_dict(sd)
     # An evaluation worker rebuilds the agent from the state alone.
     rebuilt = ACTAgent.from_state_dict(agent.state_dict())
-    assert rebuilt.config == SMOKE
+    assert rebuilt.config == agent.config
     assert np.array_equal(rebuilt.act(obs, deterministic=True), agent.act(obs))
     with pytest.raises(ValueError, match="deterministic=False"):
         rebuilt.act(obs, deterministic=False)
