@@ -41,6 +41,46 @@ def _positive(value: str) -> int:
     return v
 
 
+def _seed(value: str) -> int:
+    try:
+        v = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
+    return v
+
+
+def _out_file(value: str) -> str:
+    """A file this user can create: checked before any work, not after it."""
+    from window_bench.harness.files import check_out_dir
+
+    if Path(value).is_dir():
+        raise argparse.ArgumentTypeError(f"{value} is a directory; give a file name")
+    try:
+        check_out_dir(Path(value).parent)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("--out ")) from None
+    return value
+
+
+def _out_dir(value: str) -> str:
+    from window_bench.harness.files import check_out_dir
+
+    try:
+        check_out_dir(value)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("--out ")) from None
+    return value
+
+
+class _Parser(argparse.ArgumentParser):
+    """Bad input is one line on stderr and exit code 2 (argparse adds the whole usage)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def _choice(options, what: str):
     def parse(value: str) -> str:
         if value not in options:
@@ -223,7 +263,13 @@ def cmd_run(args) -> int:
     except (ValueError, FileExistsError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    r = run.train()
+    from window_bench.harness.files import RunFileError
+
+    try:
+        r = run.train()
+    except RunFileError as e:   # a run file that fails its check when it is read
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     f = r["final"]
     lo, hi = f["wilson95"]
     t95 = f["time_to_95_sim_hours"]
@@ -241,7 +287,7 @@ def cmd_eval(args) -> int:
 
     try:
         r = evaluate_policy_file(args.checkpoint, args.episodes, env_id=args.env)
-    except FileNotFoundError as e:
+    except (FileNotFoundError, ValueError) as e:   # a missing, foreign or corrupt file
         print(f"error: {e}", file=sys.stderr)
         return 2
     lo, hi = r["wilson95"]
@@ -255,14 +301,16 @@ def cmd_eval(args) -> int:
 
 
 def cmd_leaderboard(args) -> int:
-    from window_bench.harness.leaderboard import add_run, build
+    from window_bench.harness.leaderboard import add_run, build, check_results, run_dest
 
+    try:   # every run is checked before anything is copied
+        for run_dir in args.add or []:
+            run_dest(check_results(Path(run_dir) / "results.json"), args.root)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     for run_dir in args.add or []:
-        try:
-            print(f"added {add_run(run_dir, args.root)}")
-        except (FileNotFoundError, ValueError) as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
+        print(f"added {add_run(run_dir, args.root)}")
     print(build(args.root))
     return 0
 
@@ -274,26 +322,26 @@ def build_parser() -> argparse.ArgumentParser:
     i = sub.add_parser("install", help="run a reference controller and print per-episode stages")
     i.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
     i.add_argument("--episodes", type=_positive, default=3)
-    i.add_argument("--seed", type=int, default=0, help="first episode seed")
+    i.add_argument("--seed", type=_seed, default=0, help="first episode seed")
     i.add_argument("--controller", choices=sorted(CONTROLLERS), default="installer")
-    i.add_argument("--out", help="also write the episodes and summary to this JSON file")
+    i.add_argument("--out", type=_out_file, help="also write the episodes and summary to this JSON file")
     i.set_defaults(func=cmd_install)
     c = sub.add_parser("calibrate", help="difficulty calibration: success and failure modes per controller")
     c.add_argument("--env", type=_env_id, nargs="+", default=["WindowInstall-A-v0", "WindowInstall-B-v0"])
     c.add_argument("--controllers", nargs="+", choices=sorted(CONTROLLERS),
                    default=["installer", "straight_push", "random"])
     c.add_argument("--episodes", type=_positive, default=100)
-    c.add_argument("--seed", type=int, default=0)
-    c.add_argument("--out", default="runs/calibration", help="results directory (resumes if present)")
+    c.add_argument("--seed", type=_seed, default=0)
+    c.add_argument("--out", type=_out_dir, default="runs/calibration", help="results directory (resumes if present)")
     c.set_defaults(func=cmd_calibrate)
     from window_bench.installer.operators import OPERATORS
 
     d = sub.add_parser("demos", help="collect successful human-like demonstrations (Minari)")
     d.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
     d.add_argument("--n", type=_positive, default=50, help="successful demonstrations to keep")
-    d.add_argument("--out", default="data", help="Minari datasets root (resumes if present)")
+    d.add_argument("--out", type=_out_dir, default="data", help="Minari datasets root (resumes if present)")
     d.add_argument("--operator", choices=sorted(OPERATORS), default="average")
-    d.add_argument("--seed", type=int, default=0, help="seed of the first attempt")
+    d.add_argument("--seed", type=_seed, default=0, help="seed of the first attempt")
     d.add_argument("--max-attempts", type=_positive, default=None,
                    help="give up after this many episodes (default 2 n)")
     d.set_defaults(func=cmd_demos)
@@ -304,9 +352,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--operator", choices=sorted(OPERATORS), nargs="+",
                    default=["expert", "average", "novice"])
     v.add_argument("--episodes", type=_positive, default=20)
-    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--seed", type=_seed, default=0)
     v.add_argument("--h", type=_positive, default=10, help="chunk grid of the supervised policy")
-    v.add_argument("--out", help="write the rows to this JSON file")
+    v.add_argument("--out", type=_out_file, help="write the rows to this JSON file")
     v.set_defaults(func=cmd_supervise)
     from window_bench.installer.teleop import add_teleop_parser
 
@@ -319,8 +367,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--method", required=True, type=_choice(METHODS, "method"))
     r.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
     r.add_argument("--profile", type=_choice(PROFILES, "profile"), default="smoke")
-    r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--out", required=True, help="run directory")
+    r.add_argument("--seed", type=_seed, default=0)
+    r.add_argument("--out", type=_out_dir, required=True, help="run directory")
     r.add_argument("--resume", action="store_true", help="continue the run saved in --out")
     r.add_argument("--operator", choices=sorted(OPERATORS), default="average",
                    help="operator profile for demonstrations and takeovers")
@@ -337,7 +385,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("checkpoint", help="a policies/step_*.pt file of a run")
     e.add_argument("--episodes", type=_positive, default=100)
     e.add_argument("--env", type=_env_id, default=None, help="default: the training env")
-    e.add_argument("--out", help="write the summary to this JSON file")
+    e.add_argument("--out", type=_out_file, help="write the summary to this JSON file")
     e.set_defaults(func=cmd_eval)
     lb = sub.add_parser("leaderboard", help="regenerate the leaderboard from raw run files")
     lb.add_argument("--add", nargs="+", metavar="RUN_DIR", help="first copy these finished "

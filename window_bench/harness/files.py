@@ -278,9 +278,13 @@ class RunDir:
                                f"{legacy}; choose a new or empty directory")
         if resume and not has_manifest:
             raise RunFileError(f"--resume: {self.path} holds no run; start it without --resume")
-        self.path.mkdir(parents=True, exist_ok=True)
         self._fd = None
-        self._lock()
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            self._lock()
+        except OSError as e:
+            raise RunFileError(f"--out {self.path}: cannot be used ({e.strerror}); choose "
+                               f"another --out") from None
         try:
             if (self.path / MANIFEST).is_file():
                 self.manifest = read_manifest(self.path)

@@ -6,46 +6,147 @@ from ``bench run`` output directories with :func:`add_run`), checks its schema, 
 of the paper's Tables 2 and 3 (final success with its Wilson interval, online interaction
 time, time-to-95, cycle time, takeover minutes) plus the profile and the compute wall clock,
 so that a ``cpu``-profile number is never mistaken for a ``paper`` one.
+
+Nothing is copied or tabulated before it is checked: :func:`check_results` validates a
+``results.json`` against :func:`results_schema` (JSON Schema: types, rates in [0, 1], method,
+env and profile ids from the registries, no path separators in anything that names a
+directory) and the run's ``manifest.json`` sha256 when the run has one. :func:`build` skips
+(and reports) a bad file in ``root`` instead of failing on it.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+import sys
 from pathlib import Path
 
 from window_bench.harness.evaluation import atomic_write_text
+from window_bench.harness.files import MANIFEST, RunFileError, read_manifest, verify_files
 from window_bench.harness.run import RESULTS_SCHEMA
 from window_bench.harness.methods import METHODS
 
 RUN_FILES = ("results.json", "checkpoints.csv", "learning_curve.png")
 
 
-def add_run(run_dir: str | os.PathLike, root: str | os.PathLike = "leaderboard/runs") -> Path:
-    """Copy a finished run's raw files into ``root/<env>/<method>-<profile>-s<seed>``."""
-    run_dir = Path(run_dir)
-    results = _load(run_dir / "results.json")
+_SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+=-]*$")   # one directory name, no separator
+
+
+def results_schema() -> dict:
+    """JSON Schema of the ``results.json`` fields the leaderboard reads."""
+    import window_bench
+    from window_bench.harness.methods import PROFILES
+
+    opt = lambda s: {"anyOf": [s, {"type": "null"}]}  # noqa: E731
+    rate = {"type": "number", "minimum": 0, "maximum": 1}
+    nonneg = {"type": "number", "minimum": 0}
+    count = {"type": "integer", "minimum": 0}
+    interval = {"type": "array", "items": rate, "minItems": 2, "maxItems": 2}
+    text = {"type": "string", "pattern": r"^[^|\n\r]*$"}     # one Markdown table cell
+    commit = {"type": "object", "required": ["git_commit"], "properties": {
+        "git_commit": {"type": "string", "pattern": r"^([0-9a-f]{7,40}(-dirty)?|unknown)$"}}}
+    safe = {"type": "string", "pattern": _SAFE_NAME.pattern}
+    return {
+        "type": "object",
+        "required": ["schema_version", "method", "env_id", "profile", "seed", "final",
+                     "checkpoints", "provenance"],
+        "properties": {
+            "schema_version": {"const": RESULTS_SCHEMA},
+            "method": {"type": "object", "required": ["name", "label", "online_updates",
+                                                      "warm_start"],
+                       "properties": {"name": {"enum": list(METHODS)}, "label": text,
+                                      "online_updates": {"type": "boolean"},
+                                      "warm_start": {"type": "boolean"}}},
+            "env_id": {"enum": list(window_bench.ENV_IDS)},
+            "profile": {"type": "object", "required": ["name"],
+                        "properties": {"name": {"enum": list(PROFILES)}}},
+            "seed": count,
+            "agent_config_overrides": opt({
+                "type": "object", "propertyNames": {"pattern": r"^[A-Za-z_][A-Za-z0-9_]*$"},
+                "additionalProperties": {"anyOf": [{"type": ["number", "boolean"]}, safe,
+                                                   {"type": "array",
+                                                    "items": {"type": "number"}}]}}),
+            "final": {"type": "object",
+                      "required": ["success_rate", "wilson95", "episodes", "takeover_minutes",
+                                   "sim_hours", "wall_clock_s"],
+                      "properties": {"success_rate": rate, "wilson95": interval,
+                                     "episodes": {"type": "integer", "minimum": 1},
+                                     "cycle_time_s": opt(nonneg),
+                                     "time_to_95_sim_hours": opt(nonneg),
+                                     "takeover_minutes": nonneg, "sim_hours": nonneg,
+                                     "wall_clock_s": nonneg, "env_steps": count}},
+            "checkpoints": {"type": "array", "items": {
+                "type": "object", "required": ["env_steps", "success_rate", "wilson95"],
+                "properties": {"env_steps": count, "success_rate": rate,
+                               "wilson95": interval}}},
+            "provenance": commit,
+            "provenance_start": opt(commit),
+        },
+    }
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"{name} is not a number JSON allows")
+
+
+def check_results(path: str | os.PathLike) -> dict:
+    """The parsed ``results.json`` at ``path`` if it passes :func:`results_schema` and its
+    run's manifest; otherwise a one-line ``ValueError`` naming the file, the field and why."""
+    import jsonschema
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no results.json at {path} (is the run finished?)")
+    if (path.parent / MANIFEST).is_file():
+        verify_files(path.parent, [n for n in RUN_FILES if (path.parent / n).exists()],
+                     read_manifest(path.parent))
+    try:
+        results = json.loads(path.read_text(), parse_constant=_reject_constant)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: not readable JSON ({e})") from None
+    err = jsonschema.exceptions.best_match(
+        jsonschema.Draft202012Validator(results_schema()).iter_errors(results))
+    if err is not None:
+        where = ".".join(map(str, err.absolute_path)) or "(top level)"
+        raise ValueError(f"{path}: {where}: {err.message}")
+    for where, c in [("final", results["final"])] + [
+            (f"checkpoints.{i}", c) for i, c in enumerate(results["checkpoints"])]:
+        lo, hi = c["wilson95"]
+        if not lo <= c["success_rate"] <= hi:
+            raise ValueError(f"{path}: {where}: success_rate {c['success_rate']} lies outside "
+                             f"its wilson95 [{lo}, {hi}]")
+    return results
+
+
+def run_dest(results: dict, root: str | os.PathLike) -> Path:
+    """``root/<env>/<method><overrides>-<profile>-s<seed>``, checked to stay inside ``root``."""
     tag = "".join(f"-{k}{v}" for k, v in (results.get("agent_config_overrides") or {}).items())
-    dest = (Path(root) / results["env_id"]
-            / f"{results['method']['name']}{tag}-{results['profile']['name']}-s{results['seed']}")
-    dest.mkdir(parents=True, exist_ok=True)
-    for name in RUN_FILES:
-        if (run_dir / name).exists():
-            tmp = dest / (name + ".tmp")
-            shutil.copyfile(run_dir / name, tmp)
-            os.replace(tmp, dest / name)
+    name = f"{results['method']['name']}{tag}-{results['profile']['name']}-s{results['seed']}"
+    dest = Path(root) / results["env_id"] / name
+    if not _SAFE_NAME.match(name) or not dest.resolve().is_relative_to(Path(root).resolve()):
+        raise ValueError(f"leaderboard entry name {name!r} is not one safe directory name")
     return dest
 
 
-def _load(path: Path) -> dict:
-    if not path.is_file():
-        raise FileNotFoundError(f"no results.json at {path} (is the run finished?)")
-    results = json.loads(path.read_text())
-    if results.get("schema_version") != RESULTS_SCHEMA:
-        raise ValueError(f"{path}: schema_version {results.get('schema_version')!r}, "
-                         f"expected {RESULTS_SCHEMA}")
-    return results
+def add_run(run_dir: str | os.PathLike, root: str | os.PathLike = "leaderboard/runs") -> Path:
+    """Copy a finished run's raw files into ``root/<env>/<method>-<profile>-s<seed>`` (after
+    :func:`check_results`), with a manifest of what was copied."""
+    run_dir = Path(run_dir)
+    dest = run_dest(check_results(run_dir / "results.json"), root)
+    source = read_manifest(run_dir) if (run_dir / MANIFEST).is_file() else None
+    dest.mkdir(parents=True, exist_ok=True)
+    names = [n for n in RUN_FILES if (run_dir / n).exists()]
+    for name in names:
+        tmp = dest / (name + ".tmp")
+        shutil.copyfile(run_dir / name, tmp)
+        os.replace(tmp, dest / name)
+    if source is not None:
+        atomic_write_text(dest / MANIFEST, json.dumps(
+            {**source, "files": {n: source["files"][n] for n in names}}, indent=1,
+            sort_keys=True))
+    return dest
 
 
 def _pct(x) -> str:
@@ -82,8 +183,12 @@ def build(root: str | os.PathLike = "leaderboard/runs", readme: str | os.PathLik
           "leaderboard/README.md", snippet: str | os.PathLike | None =
           "docs/snippets/leaderboard.md") -> str:
     """Regenerate the leaderboard files from ``root``; returns the table."""
-    paths = sorted(Path(root).rglob("results.json"))
-    results = [_load(p) for p in paths]
+    results = []
+    for path in sorted(Path(root).rglob("results.json")):
+        try:
+            results.append(check_results(path))
+        except (ValueError, FileNotFoundError) as e:   # RunFileError is a ValueError
+            print(f"skipped {e}", file=sys.stderr)
     body = (table(results) + "\n\n¹ The commit the run started on; for runs that predate that "
             "record, the commit that wrote their results.") if results else "No runs yet."
     if snippet is not None:
