@@ -9,6 +9,7 @@
     bench run --method qcfql --env WindowInstall-A-v0 --profile smoke --seed 0 --out runs/x
     bench eval runs/x/policies/step_0000400.pt --episodes 20
     bench leaderboard --add runs/x                             # tables from raw run files
+    bench encoder train --out enc.safetensors                  # pixel track: in-domain backbone
 """
 
 from __future__ import annotations
@@ -359,6 +360,9 @@ def build_parser() -> argparse.ArgumentParser:
     from window_bench.installer.teleop import add_teleop_parser
 
     add_teleop_parser(sub)
+    from window_bench.pixels.cli import add_encoder_parser
+
+    add_encoder_parser(sub)
     from window_bench.harness.methods import METHODS, PROFILES
 
     m = sub.add_parser("methods", help="print Table 1 (methods and their components)")

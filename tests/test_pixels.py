@@ -1,0 +1,250 @@
+"""The pixel observation track: encoder shapes, the frozen backbone, weight files, cached
+features and determinism (window_bench.pixels)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from window_bench.pixels import weights as W
+from window_bench.pixels.encoder import (EMBED_DIM, OBS_DIM, PROPRIO_DIM, VIEW_FEATURES,
+                                         PixelObsEncoder, ResNet10, frozen, split_observation)
+from window_bench.pixels.features import PixelFeatures, encode_views, make_pixel_env
+
+ENV = "WindowInstall-A-v0"
+
+
+@pytest.fixture(scope="module")
+def backbone():
+    """A seeded random backbone: these tests check plumbing, not what the features mean."""
+    with torch.random.fork_rng():
+        torch.manual_seed(0)
+        return frozen(ResNet10())
+
+
+def _random_obs(n: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, OBS_DIM, generator=g)
+
+
+def test_shapes(backbone):
+    images = torch.randint(0, 256, (3, 128, 128, 3), dtype=torch.uint8)
+    with torch.no_grad():
+        fmap = backbone(images)
+    assert fmap.shape == (3, 512, 4, 4)
+    maps, proprio = split_observation(_random_obs(5))
+    assert [m.shape for m in maps] == [(5, 512, 4, 4)] * 2 and proprio.shape == (5, PROPRIO_DIM)
+    assert OBS_DIM == 2 * VIEW_FEATURES + PROPRIO_DIM
+    enc = PixelObsEncoder(seed=0)
+    out = enc(_random_obs(5))
+    assert out.shape == (5, 2 * EMBED_DIM + PROPRIO_DIM) == (5, PixelObsEncoder.out_dim)
+    assert out[:, :2 * EMBED_DIM].abs().max() < 1.0          # tanh embeddings
+    with pytest.raises(ValueError, match="expected"):
+        enc(torch.zeros(5, OBS_DIM - 1))
+    with pytest.raises(ValueError, match=r"\(B, H, W, 3\)"):
+        backbone(torch.zeros(1, 3, 128, 128, dtype=torch.uint8))
+
+
+def test_backbone_frozen_through_a_training_step(backbone):
+    """Gradients of a loss through the whole encoder reach the aggregation, never the
+    backbone; the backbone (weights and BatchNorm statistics) is bit-identical after it."""
+    before = {k: v.clone() for k, v in backbone.state_dict().items()}
+    enc = PixelObsEncoder(seed=1)
+    opt = torch.optim.Adam([*enc.parameters(), *backbone.parameters()], lr=1e-2)
+    images = torch.randint(0, 256, (4, 128, 128, 3), dtype=torch.uint8,
+                           generator=torch.Generator().manual_seed(0))
+    fmaps = backbone(images).reshape(2, -1)                   # 2 observations x 2 views
+    obs = torch.cat([fmaps, torch.zeros(2, PROPRIO_DIM)], dim=1)
+    loss = enc(obs).square().sum()
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    assert all(p.grad is None for p in backbone.parameters())
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in enc.views.parameters())
+    after = backbone.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)
+
+
+def test_pixel_agent_update_keeps_backbone_and_trains_aggregation(backbone):
+    from baselines.qcfql import QCFQLConfig
+    from window_bench.pixels.agent import PixelQCFQL
+
+    before = {k: v.clone() for k, v in backbone.state_dict().items()}
+    agent = PixelQCFQL(QCFQLConfig(h=2, hidden=(32, 32), batch_size=8), seed=0)
+    agg0 = agent.encoder.views[0].spatial.kernel.detach().clone()
+    batch = _batch(8, h=2)
+    metrics = agent.update(batch)
+    assert np.isfinite(metrics["loss"]) and agent.num_updates == 1
+    assert not torch.equal(agg0, agent.encoder.views[0].spatial.kernel)
+    assert all(torch.equal(before[k], v) for k, v in backbone.state_dict().items())
+    chunk = agent.act(batch["obs"][0].numpy(), deterministic=True)
+    assert chunk.shape == (2, 7)
+    clone = PixelQCFQL.from_state_dict(agent.state_dict())
+    np.testing.assert_array_equal(clone.act(batch["obs"][:3].numpy(), deterministic=True),
+                                  agent.act(batch["obs"][:3].numpy(), deterministic=True))
+
+
+def _batch(n: int, h: int) -> dict:
+    g = torch.Generator().manual_seed(n)
+    return {"obs": _random_obs(n, 1), "next_obs": _random_obs(n, 2),
+            "actions": torch.rand(n, h, 7, generator=g) * 2 - 1,
+            "action_mask": torch.ones(n, h, dtype=torch.bool), "reward": torch.zeros(n),
+            "discount": torch.full((n,), 0.98), "terminal": torch.zeros(n, dtype=torch.bool),
+            "valid": torch.ones(n, dtype=torch.bool),
+            "episode_accepted": torch.ones(n, dtype=torch.bool),
+            "provenance_code": torch.ones(n, h, dtype=torch.uint8)}
+
+
+# ---------------------------------------------------------------- weight files
+def test_weights_round_trip_and_timm_layout(tmp_path):
+    with torch.random.fork_rng():
+        torch.manual_seed(3)
+        model = ResNet10()
+    path = tmp_path / "w.safetensors"
+    size = W.save_backbone(model, path, {"note": "test"})
+    assert size < 10_000_000                                  # float16: ships in the package
+    loaded = W.load_backbone(path)
+    assert not loaded.training and not any(p.requires_grad for p in loaded.parameters())
+    for k, v in model.state_dict().items():
+        expect = v.to(torch.float16).float() if v.is_floating_point() else v
+        assert torch.equal(loaded.state_dict()[k], expect), k
+    assert W.weights_record(path) == {"note": "test"}
+    # a timm file: float32, with the ImageNet classifier and no num_batches_tracked
+    from safetensors.torch import save_file
+
+    sd = {k: v.contiguous() for k, v in model.state_dict().items()
+          if not k.endswith("num_batches_tracked")}
+    sd.update({"fc.weight": torch.zeros(1000, 512), "fc.bias": torch.zeros(1000)})
+    save_file(sd, str(tmp_path / "timm.safetensors"))
+    timm = W.load_backbone(tmp_path / "timm.safetensors")
+    assert torch.equal(timm.layer4[0].conv2.weight, model.layer4[0].conv2.weight)
+
+
+def test_wrong_weight_files_are_refused(tmp_path):
+    from safetensors.torch import save_file
+
+    sd = ResNet10().state_dict()
+    cases = {
+        "not_safetensors": ("pickle", "not a safetensors weights file"),
+        "missing": ({k: v for k, v in sd.items() if k != "layer2.0.conv1.weight"},
+                    "1 missing keys"),
+        "unexpected": ({**sd, "head.weight": torch.zeros(3)}, "1 unexpected keys"),
+        "shape": ({**sd, "layer1.0.conv1.weight": torch.zeros(64, 64, 1, 1)}, "wrong shape"),
+    }
+    for name, (content, message) in cases.items():
+        path = tmp_path / f"{name}.safetensors"
+        if content == "pickle":
+            torch.save(sd, path)                              # a pickle is never loaded
+        else:
+            save_file({k: v.contiguous() for k, v in content.items()}, str(path))
+        with pytest.raises(W.WeightsError, match=message):
+            W.load_backbone(path)
+    with pytest.raises(W.WeightsError, match="no such file"):
+        W.load_backbone(tmp_path / "absent.safetensors")
+
+
+def test_no_silent_random_encoder(monkeypatch, tmp_path):
+    monkeypatch.setattr(W, "DEFAULT_WEIGHTS", tmp_path / "absent.safetensors")
+    with pytest.raises(W.WeightsError, match="bench encoder train"):
+        W.resolve_backbone(None)
+    model, label = W.resolve_backbone(None, allow_random=True)
+    assert label.startswith("random")
+
+
+def test_cli_encoder_info_rejects_a_wrong_file(tmp_path, capsys):
+    from window_bench.cli import main
+
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"\x00" * 64)
+    assert main(["encoder", "info", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "not a safetensors weights file" in err
+    assert len(err.splitlines()) == 1
+
+
+# ---------------------------------------------------------------- features in the env
+def _run(env, seed: int, steps: int) -> list:
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed)
+    out = [obs]
+    for _ in range(steps):
+        a = rng.uniform(-0.3, 0.3, 7).astype(np.float32)
+        a[6] = 1.0
+        obs, *_ = env.step(a)
+        out.append(obs)
+    return out
+
+
+def test_feature_wrapper_is_deterministic_and_matches_on_the_fly(backbone):
+    import gymnasium as gym
+
+    env = make_pixel_env(ENV, backbone)
+    assert env.observation_space.shape == (OBS_DIM,)
+    first = _run(env, seed=5, steps=3)
+    second = _run(env, seed=5, steps=3)
+    for a, b in zip(first, second):
+        np.testing.assert_array_equal(a, b)                   # same seed, same features
+    fmap = np.stack(first)[:, :2 * VIEW_FEATURES]
+    assert np.array_equal(fmap, fmap.astype(np.float16).astype(np.float32))  # lossless fp16
+    env.close()
+
+    # On the fly: the raw views of the same episode, the backbone run on all of them in one
+    # batch, then the trainable encoder; it matches the encoder on the cached features.
+    raw_env = gym.make(ENV, obs_mode="pixels")
+    raw = _run(raw_env, seed=5, steps=3)
+    raw_env.close()
+    for cached, obs in zip(first, raw):
+        np.testing.assert_array_equal(cached, encode_views(backbone, obs))
+    images = torch.from_numpy(np.stack([o[v] for o in raw for v in ("wrist_rgb", "side_rgb")]))
+    with torch.no_grad():
+        fly = backbone(images).to(torch.float16).float().reshape(len(raw), -1)
+    proprio = torch.from_numpy(np.stack([o["robot0_proprio"] for o in raw]))
+    enc = PixelObsEncoder(seed=0)
+    with torch.no_grad():
+        from_cache = enc(torch.from_numpy(np.stack(first)))
+        on_the_fly = enc(torch.cat([fly, proprio], dim=1))
+    torch.testing.assert_close(from_cache, on_the_fly, atol=2e-3, rtol=0)
+
+
+def test_wrapper_refuses_state_envs_and_trainable_backbones(backbone):
+    import gymnasium as gym
+
+    with pytest.raises(ValueError, match="obs_mode='pixels'"):
+        PixelFeatures(gym.make(ENV, obs_mode="flat"), backbone)
+    with pytest.raises(ValueError, match="frozen"):
+        PixelFeatures(gym.make(ENV, obs_mode="pixels"), ResNet10())
+
+
+def test_pixel_smoke_pipeline_is_deterministic(backbone):
+    """Rollout -> chunk replay -> updates on the pixel track, twice with one seed: the
+    same logged features, the same batches, the same parameters."""
+    from baselines.qcfql import QCFQLConfig
+    from window_bench.data.replay import ChunkReplay
+    from window_bench.installer.rollout import Rollout
+    from window_bench.pixels.agent import PixelQCFQL
+
+    class Policy:
+        h = 2
+
+        def __init__(self, agent):
+            self.agent = agent
+
+        def act(self, obs):
+            return self.agent.act(obs)
+
+    def once():
+        agent = PixelQCFQL(QCFQLConfig(h=2, hidden=(32, 32), batch_size=4), seed=0)
+        env = make_pixel_env(ENV, backbone, max_episode_steps=4)
+        log = Rollout(env, Policy(agent)).run(seed=11)
+        env.close()
+        replay = ChunkReplay(capacity=16, h=2, gamma=0.99, seed=0)
+        replay.add_episode(log)
+        for _ in range(2):
+            agent.update(replay.sample(4))
+        return log.observations, agent.encoder.state_dict(), agent.agent.critic.state_dict()
+
+    a, b = once(), once()
+    np.testing.assert_array_equal(a[0], b[0])
+    for sa, sb in zip(a[1:], b[1:]):
+        assert all(torch.equal(sa[k], sb[k]) for k in sa)

@@ -1,0 +1,102 @@
+"""``PixelQCFQL``: QC-FQL on the pixel track (cached backbone features + proprioception).
+
+The paper's networks take ``concat(view embeddings, proprioception)`` (Appendix): here a
+:class:`~window_bench.pixels.encoder.PixelObsEncoder` turns the flat observation of
+:class:`~window_bench.pixels.features.PixelFeatures` into those 82 values, and an unchanged
+:class:`baselines.qcfql.QCFQLAgent` (``obs_dim = 82``) learns on them.
+
+Who trains the aggregation: the critic loss, as in HIL-SERL and DrQ; the actor and the flow
+teacher read the embedding with the gradient stopped, so the actor's Q-maximisation cannot
+reshape the representation. The TD target embeds ``s'`` with a Polyak copy of the encoder
+(rate ``tau``, like the target critic). The backbone is not part of the agent: its features
+come cached in the batch, which is why an update costs about what a state-track update costs.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+
+from window_bench.pixels.encoder import OBS_DIM, PixelObsEncoder
+
+
+class PixelQCFQL:
+    """``act``/``update``/``state_dict`` as :class:`baselines.qcfql.QCFQLAgent`, on flat pixel
+    observations (``OBS_DIM`` values). ``proprio_mean``/``proprio_std``: the fixed
+    proprioception normaliser (18 values each)."""
+
+    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None):
+        from baselines.qcfql import QCFQLAgent, QCFQLConfig
+
+        config = QCFQLConfig() if config is None else config
+        self.obs_dim = OBS_DIM
+        self.encoder = PixelObsEncoder(seed, proprio_mean, proprio_std)
+        self.target_encoder = copy.deepcopy(self.encoder).requires_grad_(False)
+        self.agent = QCFQLAgent(PixelObsEncoder.out_dim, 7, config, seed=seed)
+        self.encoder_optimizer = torch.optim.Adam(self.encoder.parameters(), lr=config.lr)
+
+    @property
+    def config(self):
+        return self.agent.config
+
+    @property
+    def num_updates(self) -> int:
+        return self.agent.num_updates
+
+    def embed(self, obs) -> torch.Tensor:
+        """Flat pixel observations (B, OBS_DIM) -> the 82-value agent input (no gradient)."""
+        with torch.no_grad():
+            return self.encoder(torch.as_tensor(np.asarray(obs, np.float32)).reshape(-1, OBS_DIM))
+
+    def update(self, batch: Mapping) -> dict[str, float]:
+        """One gradient step (critic + encoder aggregation, teacher, student) and the Polyak
+        steps; ``batch`` as for ``QCFQLAgent.update`` with ``obs``/``next_obs`` of OBS_DIM."""
+        agent = self.agent
+        emb = self.encoder(torch.as_tensor(batch["obs"]))
+        with torch.no_grad():
+            next_emb = self.target_encoder(torch.as_tensor(batch["next_obs"]))
+        b = agent.prepare({**{k: batch[k] for k in batch.keys()},
+                           "obs": emb, "next_obs": next_emb})
+        critic_loss, q = agent.critic_loss(b)
+        stopped = {**b, "obs": b["obs"].detach()}
+        flow_loss = agent.flow_loss(stopped)
+        actor = agent.actor_loss(stopped)
+        loss = critic_loss + flow_loss + actor["loss"]
+        agent.optimizer.zero_grad(set_to_none=True)
+        self.encoder_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        agent.optimizer.step()
+        self.encoder_optimizer.step()
+        agent.polyak()
+        with torch.no_grad():
+            for t, o in zip(self.target_encoder.parameters(), self.encoder.parameters()):
+                t.lerp_(o, agent.config.tau)
+        agent.num_updates += 1
+        return {"loss": loss.item(), "critic_loss": critic_loss.item(),
+                "flow_loss": flow_loss.item(), "actor_loss": actor["loss"].item(),
+                "q_mean": q.mean().item()}
+
+    def act(self, obs, deterministic: bool = False, policy: str = "student") -> np.ndarray:
+        single = np.ndim(obs) == 1
+        u = self.agent.act(self.embed(obs).numpy(), deterministic=deterministic, policy=policy)
+        return u[0] if single and u.ndim == 3 else u
+
+    def state_dict(self) -> dict:
+        return {"agent": self.agent.state_dict(),
+                "encoder": copy.deepcopy(self.encoder.state_dict()),
+                "target_encoder": copy.deepcopy(self.target_encoder.state_dict()),
+                "encoder_optimizer": copy.deepcopy(self.encoder_optimizer.state_dict())}
+
+    @classmethod
+    def from_state_dict(cls, sd: dict) -> "PixelQCFQL":
+        from baselines.qcfql import QCFQLAgent
+
+        agent = QCFQLAgent.from_state_dict(sd["agent"])
+        out = cls(agent.config, seed=agent.seed)
+        out.agent = agent
+        for name in ("encoder", "target_encoder", "encoder_optimizer"):
+            getattr(out, name).load_state_dict(sd[name])
+        return out

@@ -1,0 +1,112 @@
+"""``bench encoder``: train the in-domain default backbone, or inspect a weights file.
+
+    bench encoder train --out window_bench/pixels/assets/resnet10_window.safetensors
+    bench encoder info  PATH      # loads PATH as the pixel track would; prints its record
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def _learning_rate(value: str) -> float:
+    try:
+        v = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {value!r}") from None
+    if not 0.0 < v <= 1.0:
+        raise argparse.ArgumentTypeError(f"learning rate {v} is outside (0, 1]")
+    return v
+
+
+def _minutes(value: str) -> float:
+    try:
+        v = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {value!r}") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0 minutes, got {v}")
+    return v
+
+
+def _seed(value: str) -> int:
+    try:
+        v = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
+    return v
+
+
+def cmd_encoder_train(args) -> int:
+    import torch
+
+    from window_bench.pixels.pretrain import pretrain_encoder, quality_table
+
+    torch.set_num_threads(1)
+    command = (f"bench encoder train --env {' '.join(args.env)} --episodes {args.episodes} "
+               f"--heldout-episodes {args.heldout_episodes} --every {args.every} "
+               f"--epochs {args.epochs} --batch {args.batch} --lr {args.lr} --seed {args.seed}"
+               + (f" --max-minutes {args.max_minutes}" if args.max_minutes else ""))
+    record = pretrain_encoder(args.out, env_ids=args.env, episodes=args.episodes,
+                              heldout_episodes=args.heldout_episodes, every=args.every,
+                              epochs=args.epochs, batch=args.batch, lr=args.lr,
+                              seed=args.seed, max_minutes=args.max_minutes,
+                              command=command)
+    print(f"wrote {args.out} ({record['bytes'] / 1e6:.2f} MB); {record['train']['frames']} "
+          f"training frames, {record['heldout']['frames']} held-out frames, "
+          f"{record['steps']} steps in {record['train_seconds']:.0f} s")
+    print(quality_table(record))
+    return 0
+
+
+def cmd_encoder_info(args) -> int:
+    from window_bench.pixels.pretrain import quality_table
+    from window_bench.pixels.weights import WeightsError, load_backbone, weights_record
+
+    try:
+        load_backbone(args.path)
+        record = weights_record(args.path)
+    except WeightsError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if not record:
+        print(f"{args.path}: a ResNet-10 (timm resnet10t) backbone without a window-bench "
+              f"training record (e.g. ImageNet weights)")
+        return 0
+    print(json.dumps({k: v for k, v in record.items()
+                      if k not in ("heldout_quality", "target_mean", "target_std")}, indent=1))
+    if "heldout_quality" in record:
+        print(quality_table(record))
+    return 0
+
+
+def add_encoder_parser(sub) -> None:
+    from window_bench import ENV_IDS
+    from window_bench.cli import _positive
+
+    enc = sub.add_parser("encoder", help="the pixel track's backbone: pretrain it in-domain "
+                                         "or inspect a weights file")
+    esub = enc.add_subparsers(dest="encoder_command", required=True)
+    t = esub.add_parser("train", help="pretrain the ResNet-10 on rendered frames of "
+                                      "scripted-installer episodes (docs/pixels.md)")
+    t.add_argument("--out", required=True, help="weights file to write (.safetensors)")
+    t.add_argument("--env", nargs="+", choices=ENV_IDS,
+                   default=["WindowInstall-A-v0", "WindowInstall-B-v0"])
+    t.add_argument("--episodes", type=_positive, default=64, help="training episodes")
+    t.add_argument("--heldout-episodes", type=_positive, default=12)
+    t.add_argument("--every", type=_positive, default=3, help="keep every n-th step's frames")
+    t.add_argument("--epochs", type=_positive, default=2)
+    t.add_argument("--batch", type=_positive, default=32, help="frames per step (2 views each)")
+    t.add_argument("--lr", type=_learning_rate, default=2e-3)
+    t.add_argument("--seed", type=_seed, default=0)
+    t.add_argument("--max-minutes", type=_minutes, default=None,
+                   help="stop training after this many minutes (the record says so)")
+    t.set_defaults(func=cmd_encoder_train)
+    i = esub.add_parser("info", help="load a weights file as the pixel track would and "
+                                     "print its training record")
+    i.add_argument("path")
+    i.set_defaults(func=cmd_encoder_info)
