@@ -128,11 +128,11 @@ class ACTConfig:
             if not ok:
                 raise ValueError(f"ACTConfig.{name} = {v!r} is not allowed: must lie in "
                                  f"[{lo}, {hi})")
-        for name in ("lr", "std_floor"):
+        for name, hi in (("lr", 1.0), ("std_floor", math.inf)):
             v = getattr(self, name)
-            if not (_is_real(v) and 0.0 < v < math.inf):
+            if not (_is_real(v) and 0.0 < v <= hi):
                 raise ValueError(f"ACTConfig.{name} = {v!r} is not allowed: must be a "
-                                 f"finite number > 0")
+                                 f"finite number in (0, {hi}]")
 
 
 def _is_real(v) -> bool:

@@ -183,20 +183,33 @@ class HILSERLConfig:
         if self.num_min > self.num_critics:
             raise ValueError(f"num_min = {self.num_min} is not allowed: it must lie in "
                              f"[1, num_critics = {self.num_critics}]")
+        real = lambda v: (isinstance(v, numbers.Real) and not isinstance(v, bool)  # noqa: E731
+                          and math.isfinite(v))
+        for name in ("log_std_min", "log_std_max"):
+            if not real(getattr(self, name)):
+                raise ValueError(f"{name} = {getattr(self, name)!r} is not allowed: it must be "
+                                 f"a finite number")
         if not (self.log_std_min < self.log_std_max):
             raise ValueError(f"log_std_min = {self.log_std_min} must be < log_std_max = "
                              f"{self.log_std_max}")
-        for name in ("init_temperature", "actor_lr", "critic_lr", "temperature_lr",
-                     "obs_std_floor"):
+        for name in ("critic_layernorm", "actor_layernorm", "backup_entropy"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} = {getattr(self, name)!r} is not allowed: it must be "
+                                 f"true or false")
+        for name in ("init_temperature", "obs_std_floor"):
             value = getattr(self, name)
-            if not (isinstance(value, numbers.Real) and math.isfinite(value) and value > 0):
+            if not (real(value) and value > 0):
                 raise ValueError(f"{name} = {value!r} is not allowed: it must be a finite "
                                  f"number > 0")
-        if not (isinstance(self.gamma, numbers.Real) and 0.0 <= self.gamma <= 1.0):
+        for name in ("actor_lr", "critic_lr", "temperature_lr"):
+            value = getattr(self, name)
+            if not (real(value) and 0 < value <= 1):
+                raise ValueError(f"{name} = {value!r} is not allowed: it must lie in (0, 1]")
+        if not (real(self.gamma) and 0.0 <= self.gamma <= 1.0):
             raise ValueError(f"gamma = {self.gamma!r} is not allowed: it must lie in [0, 1]")
-        if not (isinstance(self.tau, numbers.Real) and 0.0 < self.tau <= 1.0):
+        if not (real(self.tau) and 0.0 < self.tau <= 1.0):
             raise ValueError(f"tau = {self.tau!r} is not allowed: it must lie in (0, 1]")
-        if self.target_entropy is not None and not math.isfinite(self.target_entropy):
+        if self.target_entropy is not None and not real(self.target_entropy):
             raise ValueError(f"target_entropy = {self.target_entropy!r} is not allowed: it "
                              f"must be finite or None")
         if self.obs_clip is not None and not (isinstance(self.obs_clip, numbers.Real)

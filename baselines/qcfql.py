@@ -171,9 +171,10 @@ class QCFQLConfig:
                                   or w < 1 for w in self.hidden):
             raise ValueError(f"QCFQLConfig.hidden = {self.hidden!r} is not allowed: it must be "
                              f"a non-empty tuple of integers >= 1")
-        checks = (("alpha", 0.0, float("inf"), True), ("lr", 0.0, float("inf"), False),
+        # Finite bounds only: Infinity or 1e30 would pass an open range and crash later.
+        checks = (("alpha", 0.0, 1e6, True), ("lr", 0.0, 1.0, False),
                   ("tau", 0.0, 1.0, False), ("gamma", 0.0, 1.0, True),
-                  ("obs_std_floor", 0.0, float("inf"), False),
+                  ("obs_std_floor", 0.0, 1.0, False),
                   ("act_noise_scale", 0.0, 10.0, True), ("td_noise_scale", 0.0, 10.0, True),
                   ("distill_noise_scale", 0.0, 10.0, True),
                   ("policy_ema", 0.0, 1.0, True))
@@ -185,6 +186,11 @@ class QCFQLConfig:
                 interval = f"{'[' if lo_ok else '('}{lo}, {hi}]"
                 raise ValueError(f"QCFQLConfig.{name} = {value!r} is not allowed: it must be "
                                  f"a real number in {interval}")
+        for name in ("normalize_q_loss", "critic_layer_norm", "distill_from_ema",
+                     "binary_gripper"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"QCFQLConfig.{name} = {getattr(self, name)!r} is not "
+                                 f"allowed: it must be true or false")
         if self.q_agg not in ("mean", "min"):
             raise ValueError(f"QCFQLConfig.q_agg = {self.q_agg!r} is not allowed: use 'mean' "
                              f"or 'min'")

@@ -198,8 +198,12 @@ def cmd_calibrate(args) -> int:
 def cmd_demos(args) -> int:
     from window_bench.installer.demos import collect_demos
 
-    s = collect_demos(args.env, args.n, args.out, operator=args.operator, seed=args.seed,
-                      max_attempts=args.max_attempts, progress=True)
+    try:
+        s = collect_demos(args.env, args.n, args.out, operator=args.operator, seed=args.seed,
+                          max_attempts=args.max_attempts, progress=True)
+    except ValueError as e:   # bad sizes, or an existing dataset that cannot be read
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     print(f"{s['kept']}/{s['attempts']} demonstrations succeeded "
           f"({100 * s['success_rate']:.0f} %) on {args.env}, operator {args.operator}, "
           f"seeds {args.seed}..{args.seed + s['attempts'] - 1}")

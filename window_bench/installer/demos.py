@@ -37,6 +37,24 @@ def demo_dataset_id(env_id: str, operator: str) -> str:
     return f"window-bench/demos-{tag}-{operator}-v0"
 
 
+def demo_dataset_path(out: str | os.PathLike, env_id: str, operator: str) -> Path:
+    """Where :func:`collect_demos` writes that dataset (Minari: ``<root>/<namespace>/<name>``)."""
+    return Path(out) / demo_dataset_id(env_id, operator)
+
+
+def load_or_collect_demos(out: str | os.PathLike, env_id: str, operator: str, n: int,
+                          seed: int, progress: bool = True) -> list[EpisodeLog]:
+    """The demonstrations under ``out``, collected first only if that dataset does not
+    exist: one that exists but cannot be read is an error, never replaced."""
+    if not demo_dataset_path(out, env_id, operator).exists():
+        collect_demos(env_id, n, out, operator=operator, seed=seed, progress=progress)
+    try:
+        return load_demos(out, env_id, operator)
+    except ValueError as e:
+        raise ValueError(f"{e}; it was not replaced: repair or remove it, or pass another "
+                         f"--demos") from None
+
+
 def _save_partial(path: Path, log: EpisodeLog, row: dict) -> None:
     tmp = path.with_name(path.name + ".tmp.npz")
     np.savez(tmp, observations=log.observations, actions=log.actions, rewards=log.rewards,
@@ -81,6 +99,12 @@ def collect_demos(env_id: str, n: int, out: str | os.PathLike, *, operator: str 
     if max_attempts < n:
         raise ValueError(f"max_attempts = {max_attempts} is below n = {n}")
     out = Path(out)
+    if demo_dataset_path(out, env_id, profile.name).exists():
+        try:   # a dataset that is there stays there: resumed when readable, else an error
+            load_demos(out, env_id, profile.name)
+        except ValueError as e:
+            raise ValueError(f"{e}; it was not replaced: repair or remove it, or collect into "
+                             f"another --out") from None
     partial = out / ".partial" / demo_dataset_id(env_id, profile.name).replace("/", "__")
     partial.mkdir(parents=True, exist_ok=True)
     env = gym.make(env_id, obs_mode="flat")
