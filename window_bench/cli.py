@@ -9,6 +9,8 @@
     bench run --method qcfql --env WindowInstall-A-v0 --profile smoke --seed 0 --out runs/x
     bench eval runs/x/policies/step_0000400.pt --episodes 20
     bench leaderboard --add runs/x                             # tables from raw run files
+    bench sweep experiments/table2.toml --out leaderboard/runs # a grid of runs on Ray
+    bench tables --runs leaderboard/runs --out docs/results    # Tables 2-7, Figs. 10/11
     bench encoder train --out enc.safetensors                  # pixel track: in-domain backbone
 """
 
@@ -320,6 +322,40 @@ def cmd_leaderboard(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    from window_bench.harness.sweep import GridError, Sweep, load_grid
+
+    try:
+        sweep = Sweep(load_grid(args.grid), args.out, workers=args.workers,
+                      address=args.address, progress=not args.no_progress)
+    except GridError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    try:
+        summary = sweep.run()
+    except KeyboardInterrupt:
+        print("interrupted: every cell is resumable; rerun the same command", file=sys.stderr)
+        return 130
+    cells = summary["cells"].values()
+    failed = [name for name, c in summary["cells"].items() if c["status"] != "done"]
+    print(f"grid {summary['grid']}: {len(cells) - len(failed)}/{len(cells)} cells done in "
+          f"{summary['wall_clock_s'] / 60:.1f} min on {summary['workers']} worker(s)"
+          + (f"; not done: {', '.join(failed)}" if failed else ""))
+    return 1 if failed else 0
+
+
+def cmd_tables(args) -> int:
+    from window_bench.harness.tables import build
+
+    if not Path(args.runs).is_dir():
+        print(f"error: --runs {args.runs}: no such directory", file=sys.stderr)
+        return 2
+    pages = build(args.runs, args.out, figures=not args.no_figures)
+    print(f"wrote {', '.join(sorted(pages))}{'' if args.no_figures else ', fig10/fig11 .png/.svg'}"
+          f" under {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -400,6 +436,23 @@ def build_parser() -> argparse.ArgumentParser:
                                                                 "runs' raw files in")
     lb.add_argument("--root", default="leaderboard/runs")
     lb.set_defaults(func=cmd_leaderboard)
+    sw = sub.add_parser("sweep", help="run a grid of cells (experiments/*.toml) on Ray; "
+                                      "finished cells are skipped, partial ones resumed")
+    sw.add_argument("grid", help="a grid file, e.g. experiments/table2.toml")
+    sw.add_argument("--out", default="runs/grid", help="runs root: one directory per cell")
+    sw.add_argument("--workers", type=_positive, default=None,
+                    help="cells at a time (default: one per CPU of the Ray cluster)")
+    sw.add_argument("--address", default=None,
+                    help="join an existing Ray cluster (e.g. 127.0.0.1:6379 after "
+                         "`ray start --head`); default: start one on this machine")
+    sw.add_argument("--no-progress", action="store_true", help="one line per finished cell only")
+    sw.set_defaults(func=cmd_sweep)
+    tb = sub.add_parser("tables", help="regenerate the paper's Tables 2-7 and Figs. 10/11 "
+                                       "from raw run files")
+    tb.add_argument("--runs", default="leaderboard/runs", help="runs root to read")
+    tb.add_argument("--out", default="docs/results", help="where the pages and figures go")
+    tb.add_argument("--no-figures", action="store_true", help="tables only")
+    tb.set_defaults(func=cmd_tables)
     return p
 
 

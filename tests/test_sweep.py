@@ -1,0 +1,105 @@
+"""bench sweep: grid files, cell identity and state, scheduling, and a tiny real grid on Ray."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from window_bench.harness.sweep import Cell, GridError, cell_command, cell_status, load_grid, \
+    schedule
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _grid(tmp_path, text: str):
+    p = tmp_path / "g.toml"
+    p.write_text(text)
+    return load_grid(p)
+
+
+GRID = """
+profile = "smoke"
+M = 2
+[[train]]
+methods = ["qcfql-offline", "qcfql"]
+envs = ["WindowInstall-A-v0"]
+seeds = [0, 1]
+"""
+
+
+@pytest.mark.parametrize("text, message", [
+    ('M = 0\n[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseeds=[0]', "M = 0"),
+    ('seed_set = "val"\n[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseeds=[0]',
+     "seed_set = 'val'; allowed: dev, test"),
+    ('[[train]]\nmethods=["qcfl"]\nenvs=["WindowInstall-A-v0"]\nseeds=[0]', "unknown method 'qcfl'"),
+    ('[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-C-v0"]\nseeds=[0]', "unknown env"),
+    ('[[train]]\nmethods=["sac"]\nenvs=["WindowInstall-A-v0"]\nseeds=[0]\nh=[5]',
+     "QC-FQL methods only"),
+    ('[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseeds=[-1]', "seed -1"),
+    ('[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseed=[0]', "unknown key(s) seed"),
+    ('profile = "smoke"', "declares no cells"),
+    ('profile = [', "not valid TOML"),
+])
+def test_bad_grid_is_one_line_error(tmp_path, text, message):
+    with pytest.raises(GridError, match=None) as e:
+        _grid(tmp_path, text)
+    assert message in str(e.value) and "\n" not in str(e.value)
+
+
+def test_repository_grids_load():
+    names = {p.stem: load_grid(p) for p in (REPO / "experiments").glob("*.toml")}
+    assert {"table2", "table3", "table5", "table6", "table7"} <= set(names)
+    t2 = names["table2"]
+    assert (t2.profile, t2.M, t2.seed_set) == ("cpu", 100, "test")
+    assert len(t2.cells) == 33                  # ten methods + the paper's QC-FQL, seeds 0-2
+    t5 = names["table5"]
+    assert {c.h for c in t5.cells} == {5, 20}   # h = 10 is Table 2's cell
+    assert all(c.on for c in names["table7"].cells) and len(names["table7"].cells) == 18
+
+
+def test_cell_names_h_and_overrides(tmp_path):
+    g = _grid(tmp_path, GRID + 'h = [10, 5]\nagent_config = { alpha = 30 }\n')
+    names = sorted(c.name for c in g.cells)
+    assert "WindowInstall-A-v0/qcfql-alpha30-smoke-s0" in names      # h = 10 is qcfql's own h
+    assert "WindowInstall-A-v0/qcfql-h5-alpha30-smoke-s1" in names
+    c = next(c for c in g.cells if c.h == 5)
+    argv = cell_command(c, g, tmp_path, resume=False)
+    assert argv[argv.index("--h") + 1] == "5" and "--resume" not in argv
+    assert argv[argv.index("--agent-config") + 1] == "alpha=30"
+    assert argv[argv.index("--final-episodes") + 1] == "2"
+    assert argv[argv.index("--final-seed-set") + 1] == "test"
+
+
+def test_schedule_starts_one_cell_per_stage1_group_first(tmp_path):
+    g = _grid(tmp_path, GRID.replace('["qcfql-offline", "qcfql"]',
+                                     '["qcfql-offline", "qcfql", "qcfql-no-warmstart", "act"]'))
+    order = schedule(g.cells)
+    first = order[:3]                           # act is its own group; QC-FQL s0 and s1 groups
+    assert {c.stage1_group for c in first if c.stage1_group} == {
+        c.stage1_group for c in g.cells if c.stage1_group}
+    assert Cell("act", "WindowInstall-A-v0", 0, "smoke").stage1_group is None
+
+
+def test_cell_status_done_partial_new_conflict(tmp_path):
+    g = _grid(tmp_path, GRID)
+    c = g.cells[0]
+    d = c.path(tmp_path)
+    assert cell_status(c, g, tmp_path) == "new"
+    d.mkdir(parents=True)
+    (d / "state.safetensors").write_bytes(b"x")
+    assert cell_status(c, g, tmp_path) == "partial"
+    (d / "results.json").write_text(json.dumps({"final_eval": {"episodes": 2, "seed_set": "test"}}))
+    assert cell_status(c, g, tmp_path) == "done"
+    (d / "state.safetensors").unlink()
+    (d / "results.json").write_text(json.dumps({"final_eval": {"episodes": 20, "seed_set": "dev"}}))
+    assert cell_status(c, g, tmp_path).startswith("conflict")
+
+
+def test_cli_bad_grid_exit_2(tmp_path):
+    p = tmp_path / "g.toml"
+    p.write_text("M = -3\n")
+    r = subprocess.run([sys.executable, "-m", "window_bench.cli", "sweep", str(p)],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "M = -3" in r.stderr

@@ -1,0 +1,118 @@
+"""bench tables: rows from raw results files, intervals across seeds, the paper beside ours,
+and the committed Results pages equal to what bench tables regenerates from committed runs."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from window_bench.harness.methods import METHODS, PROFILES
+from window_bench.harness.tables import bootstrap_ci, build, iqm, load_paper, load_runs, \
+    running_curves
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _results(root: Path, method: str, env: str, seed: int, success: float, *, h=None,
+             seed_set="test", M=100, overrides=None, episodes=None, cycle=25.0):
+    """A results.json as bench run writes it (the fields bench tables reads)."""
+    m = METHODS[method].as_dict()
+    if h is not None:
+        m["h"] = h
+    k = round(success * M)
+    fe = {"seed_set": seed_set, "episodes": M, "successes": k, "success_rate": k / M,
+          "wilson95": [0.0, 1.0], "cycle_time_s": cycle, "pr_S": 1.0, "pr_I_given_S": 0.9,
+          "pr_T_given_I": k / M / 0.9, "policy": "policies/final.safetensors"}
+    r = {"schema_version": 1, "method": m, "env_id": env, "profile": PROFILES["smoke"].as_dict(),
+         "seed": seed, "agent_config_overrides": overrides or {},
+         "final": {"success_rate": k / M, "wilson95": [0, 1], "episodes": M,
+                   "cycle_time_s": cycle, "time_to_95_sim_hours": None,
+                   "takeover_minutes": 3.0, "sim_hours": 0.01, "wall_clock_s": 10.0},
+         "checkpoints": [], "train_episodes": episodes or [],
+         "eval_seeds": [500000, 500000 + M - 1], "final_eval": fe,
+         "provenance": {"git_commit": "unknown"}}
+    tag = "".join(f"-{a}{b}" for a, b in (overrides or {}).items())
+    d = root / env / f"{method}{'' if h is None else f'-h{h}'}{tag}-smoke-{seed_set}-s{seed}"
+    d.mkdir(parents=True)
+    (d / "results.json").write_text(json.dumps(r))
+    return d
+
+
+def test_bootstrap_interval_and_iqm():
+    assert bootstrap_ci([0.8]) is None                     # one seed: no interval
+    assert bootstrap_ci([0.5, 0.5, 0.5]) == (0.5, 0.5)
+    lo, hi = bootstrap_ci([0.6, 0.8, 1.0])
+    assert 0.6 <= lo < 0.8 < hi <= 1.0
+    assert bootstrap_ci([0.6, 0.8, 1.0]) == (lo, hi)        # fixed generator: reproducible
+    assert iqm([1, 2, 3, 4]) is None                        # fewer than 5 seeds
+    assert iqm([0, 1, 2, 3, 100]) == pytest.approx(2.0)     # the outlier is trimmed
+
+
+def test_paper_numbers_are_the_papers():
+    p = load_paper()
+    assert p[(2, "A", "qcfql", 10, "0.5x0.5")]["final_success_pct"] == 100
+    assert p[(3, "B", "hil-serl", 1, "0.5x0.5")]["pr_T_given_I"] == 91.1
+    assert p[(5, "A", "qcfql-no-intervention", 5, "0.5x0.5")]["wilson_lo"] == 60.7
+    assert p[(7, "B", "qcfql", 10, "0.6x0.6")]["cycle_s"] == 25.8
+
+
+def test_rows_group_seeds_and_put_the_paper_beside_ours(tmp_path):
+    runs = tmp_path / "runs"
+    for seed, s in enumerate([0.80, 0.90, 1.00]):
+        _results(runs, "qcfql", "WindowInstall-A-v0", seed, s)
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.5, seed_set="dev", M=20)
+    for h in (5, 20):
+        _results(runs, "qcfql-no-intervention", "WindowInstall-B-v0", 0, 0.7, h=h)
+    rows = load_runs(runs)
+    assert len(rows) == 4                       # test and dev seeds never share a row
+    pages = build(runs, tmp_path / "out", figures=False)
+    t2 = pages["table2.md"]
+    row = next(ln for ln in t2.splitlines() if ln.startswith("| Ours (complete pipeline)")
+               and "*dev*" not in ln)
+    assert "| 3 |" in row and "**90**" in row and "80 · 90 · 100" in row
+    assert "100 [96, 100]" in row               # the paper's number and its Wilson interval
+    dev = next(ln for ln in t2.splitlines() if "*dev*" in ln and ln.startswith("| Ours"))
+    assert "**50**" in dev and "M = 20" in dev
+    assert "development seeds" in t2
+    t6 = pages["table6.md"]
+    assert "| 5 |" in t6 and "| 20 |" in t6 and "82 [74, 88]" in t6
+    assert "No runs for this table yet" in pages["table7.md"]
+
+
+def test_overrides_are_their_own_row_without_a_paper_number(tmp_path):
+    runs = tmp_path / "runs"
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.6, overrides={"policy_ema": 0.0})
+    t2 = build(runs, tmp_path / "out", figures=False)["table2.md"]
+    row = next(ln for ln in t2.splitlines() if "policy_ema" in ln and ln.startswith("|"))
+    assert row.count("| – |") >= 3             # no paper numbers for our variant
+
+
+def test_running_curves_window_and_rates():
+    eps = [{"steps": 100, "success": i % 2 == 0, "takeover_steps": 10 * (i % 2)}
+           for i in range(40)]
+    x = np.array([0.0, 100 / 36000, 40 * 100 / 36000])
+    c = running_curves(eps, x)
+    assert np.isnan(c[0, 0])                    # no episode finished yet
+    assert c[0, 1] == 1.0 and c[1, 1] == pytest.approx(10.0) and c[2, 1] == 0.0
+    assert c[0, 2] == 0.5 and c[2, 2] == pytest.approx(10 * 10 / 2000)
+
+
+def test_figures_written(tmp_path):
+    runs = tmp_path / "runs"
+    eps = [{"steps": 300, "success": i > 5, "takeover_steps": 20} for i in range(30)]
+    for seed in (0, 1):
+        _results(runs, "qcfql", "WindowInstall-A-v0", seed, 0.9, episodes=eps)
+    build(runs, tmp_path / "out")
+    for name in ("fig10.png", "fig10.svg", "fig11.png", "fig11.svg"):
+        assert (tmp_path / "out" / name).stat().st_size > 1000
+
+
+def test_committed_results_pages_equal_bench_tables(tmp_path, monkeypatch):
+    """docs/results/*.md are byte for byte what bench tables makes of leaderboard/runs."""
+    monkeypatch.chdir(REPO)
+    pages = build("leaderboard/runs", tmp_path, figures=True)
+    assert sorted(pages) == sorted(p.name for p in (REPO / "docs" / "results").glob("*.md"))
+    for name in pages:
+        assert (REPO / "docs" / "results" / name).read_bytes() == (tmp_path / name).read_bytes(), \
+            f"docs/results/{name} differs from bench tables' output: run bench tables"

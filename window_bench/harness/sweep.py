@@ -1,0 +1,555 @@
+"""``bench sweep GRID``: a grid of runs declared in a TOML file, executed on Ray.
+
+A grid file (``experiments/table2.toml`` ...) names a profile, the final evaluation's M and
+seed set, and blocks of cells::
+
+    name = "table5"
+    profile = "cpu"
+    M = 100                      # final-checkpoint evaluation rollouts
+    seed_set = "test"            # window_bench.harness.seeds
+
+    [[train]]                    # methods x envs x seeds x h (h: QC-FQL methods only)
+    methods = ["qcfql-no-intervention"]
+    envs = ["WindowInstall-A-v0"]
+    seeds = [0, 1, 2]
+    h = [5, 20]
+    # agent_config = { alpha = 100 }
+
+    [[evaluate]]                 # Table 7: evaluation-only cells on a trained cell's policy
+    method = "qcfql"
+    env = "WindowInstall-A-v0"
+    seeds = [0, 1, 2]
+    on = ["WindowInstall-A-Panel40x40-v0"]
+
+Every cell is one ``bench run`` (or ``bench eval``) in its own process, started by a Ray task
+that asks for one CPU: a crash or an out-of-memory kill stays inside its cell and is recorded
+in ``<cell>/sweep_cell.json``. A cell's directory is its identity
+(``<out>/<env>/<method>[-h<h>][-<overrides>]-<profile>-s<seed>``, the leaderboard's naming), so
+grids that share a cell (Table 5's h = 10 row is Table 2's) share its files. Before starting a
+cell the sweep reads its directory: finished (``results.json`` with the grid's final
+evaluation) is skipped, partial (a saved training state) is resumed with ``--resume``,
+anything else starts fresh. ``bench run`` writes its state atomically at episode boundaries,
+so Ctrl-C or SIGKILL at any moment leaves every cell resumable: rerun the same command.
+
+Cells that share Stage I (same agent, config, h, demonstrations, seed) share one cached
+result (:mod:`window_bench.harness.stage1`): the sweep starts one cell of each such group
+first and holds the others back until its Stage I is cached, so no worker waits on another's
+pretraining while other work is ready. Demonstrations are collected once per (env, operator,
+n, seed) into ``<out>/demos/`` under a file lock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import fcntl
+import itertools
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from window_bench.harness.evaluation import atomic_write_text
+from window_bench.harness.methods import get_method, get_profile
+from window_bench.harness.seeds import SEED_SETS
+
+GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "train", "evaluate"}
+TRAIN_KEYS = {"methods", "envs", "seeds", "h", "agent_config"}
+EVALUATE_KEYS = {"method", "env", "seeds", "on", "h", "agent_config"}
+CELL_FILE = "sweep_cell.json"
+
+
+class GridError(ValueError):
+    """A grid file that cannot be run; the message is one line naming the file and value."""
+
+
+# ---------------------------------------------------------------------------- cells
+@dataclass(frozen=True)
+class Cell:
+    """One ``bench run`` (``on`` is None) or one evaluation of a trained cell's final policy
+    on the env ``on``."""
+
+    method: str
+    env_id: str
+    seed: int
+    profile: str
+    h: int | None = None                       # None: the method's own h
+    agent_config: tuple = ()                   # sorted (key, value) pairs
+    on: str | None = None
+
+    @property
+    def train_cell(self) -> "Cell":
+        return dataclasses.replace(self, on=None)
+
+    @property
+    def name(self) -> str:
+        tag = f"-h{self.h}" if self.h is not None else ""
+        tag += "".join(f"-{k}{v}" for k, v in self.agent_config)
+        base = f"{self.env_id}/{self.method}{tag}-{self.profile}-s{self.seed}"
+        return base if self.on is None else f"{base}/eval/{self.on}"
+
+    def path(self, out: Path) -> Path:
+        """The run directory (train cell) or the evaluation's JSON file."""
+        return out / (self.name if self.on is None else self.name + ".json")
+
+    @property
+    def stage1_group(self) -> tuple | None:
+        """Cells with the same group compute the same Stage I (None: no Stage I to share)."""
+        m = get_method(self.method)
+        if self.on is not None or not m.offline_pretrain or m.agent != "qcfql":
+            return None
+        return (m.agent, self.env_id, self.seed, self.profile, self.h or m.h, self.agent_config)
+
+
+@dataclass(frozen=True)
+class Grid:
+    name: str
+    path: Path
+    profile: str
+    M: int
+    seed_set: str
+    operator: str
+    cells: tuple[Cell, ...]
+    table: int | None = None
+
+
+def _fail(path, msg: str):
+    raise GridError(f"{path}: {msg}")
+
+
+def _list(path, block: str, value, what: str, check) -> list:
+    if not isinstance(value, list) or not value:
+        _fail(path, f"{block}.{what} must be a non-empty list, got {value!r}")
+    for v in value:
+        check(v)
+    return value
+
+
+def load_grid(path: str | os.PathLike) -> Grid:
+    """Parse and check a grid file; every problem is a one-line :class:`GridError`."""
+    import window_bench
+
+    path = Path(path)
+    if not path.is_file():
+        raise GridError(f"{path}: no such grid file")
+    try:
+        doc = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise GridError(f"{path}: not valid TOML ({e})") from None
+    unknown = set(doc) - GRID_KEYS
+    if unknown:
+        _fail(path, f"unknown key(s) {', '.join(sorted(unknown))}; allowed: "
+                    f"{', '.join(sorted(GRID_KEYS))}")
+    try:
+        profile = get_profile(doc.get("profile", "smoke")).name
+    except ValueError as e:
+        _fail(path, str(e))
+    M = doc.get("M", 100)
+    if isinstance(M, bool) or not isinstance(M, int) or not 1 <= M <= 10_000:
+        _fail(path, f"M = {M!r}; allowed: an integer in 1..10000")
+    seed_set = doc.get("seed_set", "test")
+    if seed_set not in SEED_SETS:
+        _fail(path, f"seed_set = {seed_set!r}; allowed: {', '.join(SEED_SETS)}")
+    operator = doc.get("operator", "average")
+
+    def env_ok(block):
+        def check(e):
+            if e not in window_bench.ENV_IDS:
+                _fail(path, f"{block}: unknown env {e!r}; registered: "
+                            f"{', '.join(window_bench.ENV_IDS)}")
+        return check
+
+    def seed_ok(block):
+        def check(s):
+            if isinstance(s, bool) or not isinstance(s, int) or not 0 <= s < 1000:
+                _fail(path, f"{block}: seed {s!r}; allowed: an integer in 0..999")
+        return check
+
+    def method_ok(block):
+        def check(m):
+            try:
+                get_method(m)
+            except ValueError as e:
+                _fail(path, f"{block}: {e}")
+        return check
+
+    def h_list(block, spec, methods):
+        hs = spec.get("h")
+        if hs is None:
+            return [None]
+        def check(h):
+            if isinstance(h, bool) or not isinstance(h, int) or not 1 <= h <= 100:
+                _fail(path, f"{block}.h: {h!r}; allowed: integers in 1..100")
+        _list(path, block, hs, "h", check)
+        for m in methods:
+            if get_method(m).agent != "qcfql":
+                _fail(path, f"{block}.h: h is a run parameter of the QC-FQL methods only, "
+                            f"not of {m!r}")
+        return hs
+
+    def overrides(block, spec):
+        cfg = spec.get("agent_config", {})
+        if not isinstance(cfg, dict):
+            _fail(path, f"{block}.agent_config must be a table, got {cfg!r}")
+        return tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in cfg.items()))
+
+    cells: list[Cell] = []
+    for i, spec in enumerate(doc.get("train", [])):
+        block = f"train[{i}]"
+        if set(spec) - TRAIN_KEYS:
+            _fail(path, f"{block}: unknown key(s) {', '.join(sorted(set(spec) - TRAIN_KEYS))}; "
+                        f"allowed: {', '.join(sorted(TRAIN_KEYS))}")
+        methods = _list(path, block, spec.get("methods"), "methods", method_ok(block))
+        envs = _list(path, block, spec.get("envs"), "envs", env_ok(block))
+        seeds = _list(path, block, spec.get("seeds"), "seeds", seed_ok(block))
+        cfg = overrides(block, spec)
+        for m, h, e, s in itertools.product(methods, h_list(block, spec, methods), envs, seeds):
+            cells.append(Cell(m, e, s, profile, h if h != get_method(m).h else None, cfg))
+    for i, spec in enumerate(doc.get("evaluate", [])):
+        block = f"evaluate[{i}]"
+        if set(spec) - EVALUATE_KEYS:
+            _fail(path, f"{block}: unknown key(s) "
+                        f"{', '.join(sorted(set(spec) - EVALUATE_KEYS))}; allowed: "
+                        f"{', '.join(sorted(EVALUATE_KEYS))}")
+        method = spec.get("method")
+        method_ok(block)(method)
+        env_ok(block)(spec.get("env"))
+        seeds = _list(path, block, spec.get("seeds"), "seeds", seed_ok(block))
+        on = _list(path, block, spec.get("on"), "on", env_ok(block))
+        cfg = overrides(block, spec)
+        for h, s, target in itertools.product(h_list(block, spec, [method]), seeds, on):
+            cells.append(Cell(method, spec["env"], s, profile,
+                              h if h != get_method(method).h else None, cfg, on=target))
+    if not cells:
+        _fail(path, "declares no cells (add a [[train]] or [[evaluate]] block)")
+    unique = tuple(dict.fromkeys(cells))
+    return Grid(doc.get("name", path.stem), path, profile, M, seed_set, operator, unique,
+                doc.get("table"))
+
+
+# ---------------------------------------------------------------------------- cell state
+def _read_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def cell_status(cell: Cell, grid: Grid, out: Path) -> str:
+    """``done``, ``partial`` (resume it), ``new``, or ``conflict: ...`` (the directory holds
+    a different run's results; never overwritten)."""
+    p = cell.path(out)
+    if cell.on is not None:
+        r = _read_json(p)
+        if r is None:
+            return "new"
+        if (r.get("episodes"), r.get("seed_set")) == (grid.M, grid.seed_set):
+            return "done"
+        return (f"conflict: {p} holds M = {r.get('episodes')} on {r.get('seed_set')!r} seeds, "
+                f"the grid asks for M = {grid.M} on {grid.seed_set!r}")
+    r = _read_json(p / "results.json")
+    if r is not None:
+        fe = r.get("final_eval") or {}
+        if (fe.get("episodes"), fe.get("seed_set")) == (grid.M, grid.seed_set):
+            return "done"
+        if not _has_state(p):
+            return (f"conflict: {p} holds a finished run without a final M = {grid.M} "
+                    f"evaluation on {grid.seed_set!r} seeds; move it away to rerun it")
+    return "partial" if _has_state(p) else "new"
+
+
+def _has_state(run_dir: Path) -> bool:
+    return any((run_dir / n).exists() for n in ("state.safetensors", "state.pt"))
+
+
+def final_policy(run_dir: Path) -> Path:
+    """The final policy file a finished run recorded in its results."""
+    r = _read_json(run_dir / "results.json") or {}
+    rel = (r.get("final_eval") or {}).get("policy")
+    if rel is None:
+        raise FileNotFoundError(f"{run_dir}/results.json names no final policy")
+    return run_dir / rel
+
+
+def demos_dir(cell: Cell, grid: Grid, out: Path) -> Path:
+    n = get_profile(cell.profile).n_demos
+    return out / "demos" / f"{cell.env_id}-{grid.operator}-n{n}-s{cell.seed}"
+
+
+def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool) -> list[str]:
+    bench = [sys.executable, "-m", "window_bench.cli"]
+    if cell.on is not None:
+        return bench + ["eval", str(final_policy(cell.train_cell.path(out))), "--env", cell.on,
+                        "--episodes", str(grid.M), "--seed-set", grid.seed_set,
+                        "--out", str(cell.path(out))]
+    argv = bench + ["run", "--method", cell.method, "--env", cell.env_id,
+                    "--profile", cell.profile, "--seed", str(cell.seed),
+                    "--out", str(cell.path(out)), "--operator", grid.operator,
+                    "--demos", str(demos_dir(cell, grid, out)),
+                    "--final-episodes", str(grid.M), "--final-seed-set", grid.seed_set,
+                    "--stage1-cache", str(out / "stage1_cache")]
+    if cell.h is not None:
+        argv += ["--h", str(cell.h)]
+    if cell.agent_config:
+        argv += ["--agent-config", *(f"{k}={json.dumps(list(v) if isinstance(v, tuple) else v)}"
+                                     for k, v in cell.agent_config)]
+    return argv + (["--resume"] if resume else [])
+
+
+def demos_command(cell: Cell, grid: Grid, out: Path) -> list[str]:
+    """Run._demos collects with seed 1_000_000 + run seed; the same demos, collected once."""
+    return [sys.executable, "-m", "window_bench.cli", "demos", "--env", cell.env_id,
+            "--n", str(get_profile(cell.profile).n_demos), "--out",
+            str(demos_dir(cell, grid, out)), "--operator", grid.operator,
+            "--seed", str(1_000_000 + cell.seed)]
+
+
+# ---------------------------------------------------------------------------- the Ray task
+def _die_with_parent() -> None:
+    """In the child, before exec: SIGKILL when the Ray worker that started it dies, so a
+    killed sweep leaves no orphan run writing into a cell directory."""
+    import ctypes
+
+    ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)   # PR_SET_PDEATHSIG
+    os.setpgrp()
+
+
+@contextlib.contextmanager
+def _file_lock(path: Path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def run_cell(argv: list[str], log: str, demos: list[str] | None = None,
+             demos_root: str | None = None) -> dict:
+    """Body of the Ray task: (collect the demonstrations once, then) run ``argv`` with its
+    output appended to ``log``; returns the exit code and the wall clock."""
+    t0 = time.time()
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    Path(log).parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "ab") as f:
+        f.write(f"\n== {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())} "
+                f"{' '.join(argv)}\n".encode())
+        f.flush()
+        if demos is not None:
+            done = Path(demos_root) / ".complete"
+            with _file_lock(Path(demos_root + ".lock")):
+                if not done.exists():
+                    rc = subprocess.call(demos, stdout=f, stderr=subprocess.STDOUT, env=env,
+                                         preexec_fn=_die_with_parent)
+                    if rc != 0:
+                        return {"rc": rc, "wall_s": time.time() - t0, "what": "demos"}
+                    done.write_text("")
+        rc = subprocess.call(argv, stdout=f, stderr=subprocess.STDOUT, env=env,
+                             preexec_fn=_die_with_parent)
+    return {"rc": rc, "wall_s": time.time() - t0, "what": argv[3]}
+
+
+# ---------------------------------------------------------------------------- scheduling
+def schedule(cells) -> list[Cell]:
+    """Training cells round-robin over their Stage I groups (one cell of every group first,
+    so the shared pretrainings start early), then the evaluation-only cells."""
+    groups: dict = {}
+    for c in cells:
+        if c.on is None:
+            groups.setdefault(c.stage1_group or ("solo", c), []).append(c)
+    order = [c for batch in itertools.zip_longest(*groups.values()) for c in batch if c]
+    return order + [c for c in cells if c.on is not None]
+
+
+class Sweep:
+    """Runs a grid's cells on Ray (see the module docstring)."""
+
+    def __init__(self, grid: Grid, out: str | os.PathLike, workers: int | None = None,
+                 address: str | None = None, progress: bool = True):
+        self.grid, self.out = grid, Path(out)
+        self.address = address
+        self.workers = workers
+        self.progress = progress
+        if workers is not None and workers < 1:
+            raise ValueError(f"--workers {workers}; allowed: >= 1")
+
+    def _init_ray(self):
+        import ray
+
+        os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+        kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+        if self.address:
+            ray.init(address=self.address, **kw)
+        else:
+            ray.init(num_cpus=self.workers or os.cpu_count(), **kw)
+        cpus = int(ray.cluster_resources().get("CPU", 1))
+        self.slots = min(self.workers or cpus, cpus)
+        return ray
+
+    def run(self) -> dict:
+        """Run every unfinished cell; returns the summary also written to
+        ``<out>/sweep-<grid>.json``."""
+        g, out = self.grid, self.out
+        out.mkdir(parents=True, exist_ok=True)
+        status = {c: cell_status(c, g, out) for c in g.cells}
+        conflicts = {c: s for c, s in status.items() if s.startswith("conflict")}
+        todo = [c for c in schedule(g.cells) if status[c] in ("new", "partial")]
+        skipped = sum(s == "done" for s in status.values())
+        ray = self._init_ray()
+        task = ray.remote(num_cpus=1, max_retries=0)(run_cell)
+        results: dict[Cell, dict] = {}
+        running: dict = {}                     # ObjectRef -> (cell, start time)
+        t_start = time.time()
+        view = _ProgressView(len(g.cells), skipped, len(conflicts), self.slots, self.progress)
+        for c, s in conflicts.items():
+            view.log(f"[red]skipped[/] {c.name}: {s}")
+            results[c] = {"status": "conflict", "message": s}
+        interrupted = False
+        try:
+            with view:
+                while todo or running:
+                    before = set(results)
+                    ready = self._ready(todo, running, results)
+                    for c in set(results) - before:      # evaluation cells whose source failed
+                        view.finished(c, results[c])
+                    if not ready and not running:
+                        for c in todo:
+                            results[c] = {"status": "failed", "rc": None, "wall_s": 0.0,
+                                          "message": "could not be scheduled"}
+                            view.finished(c, results[c])
+                        break
+                    for c in ready:
+                        resume = cell_status(c, g, out) == "partial"
+                        argv = cell_command(c, g, out, resume)
+                        log = str((c.path(out) if c.on is None else c.path(out).parent)
+                                  / ("sweep.log" if c.on is None else f"{c.on}.log"))
+                        demos = None if c.on is not None else demos_command(c, g, out)
+                        droot = None if demos is None else str(demos_dir(c, g, out))
+                        running[task.remote(argv, log, demos, droot)] = (c, time.time(), resume)
+                        todo.remove(c)
+                    view.update(running=len(running))
+                    done, _ = ray.wait(list(running), num_returns=1, timeout=0.5)
+                    for ref in done:
+                        c, t0, resume = running.pop(ref)
+                        try:
+                            r = ray.get(ref)
+                        except Exception as e:   # the worker itself died (OOM kill, ...)
+                            r = {"rc": -1, "wall_s": time.time() - t0, "error": str(e)[:300]}
+                        r["status"] = "done" if r["rc"] == 0 else "failed"
+                        r["resumed"] = resume
+                        results[c] = r
+                        self._record(c, r)
+                        view.finished(c, r)
+        except KeyboardInterrupt:
+            interrupted = True
+            for ref in running:
+                ray.cancel(ref, force=True)
+        finally:
+            ray.shutdown()
+        summary = self._summary(results, time.time() - t_start, interrupted)
+        atomic_write_text(out / f"sweep-{g.name}.json", json.dumps(summary, indent=1))
+        if interrupted:
+            raise KeyboardInterrupt
+        return summary
+
+    def _ready(self, todo: list, running: dict, results: dict) -> list:
+        """Cells to start now: free slots, their source cell trained (evaluation cells), and
+        not waiting for a Stage I that another running cell is computing."""
+        def computing(c: Cell) -> bool:
+            return bool(c.stage1_group) and not (c.path(self.out) / "stage1.json").exists()
+
+        busy = {c.stage1_group for c, _, _ in running.values() if computing(c)}
+        picked = []
+        for c in list(todo):
+            if len(picked) >= self.slots - len(running):
+                break
+            if c.on is not None and cell_status(c.train_cell, self.grid, self.out) != "done":
+                src = c.train_cell
+                if src not in self.grid.cells or results.get(src, {}).get("status") in (
+                        "failed", "conflict"):
+                    results[c] = {"status": "failed", "rc": None, "wall_s": 0.0,
+                                  "message": f"the trained cell {src.name} is not finished"}
+                    todo.remove(c)
+                continue
+            if c.stage1_group in busy:
+                continue
+            if computing(c):
+                busy.add(c.stage1_group)
+            picked.append(c)
+        return picked
+
+    def _record(self, c: Cell, r: dict) -> None:
+        path = (c.path(self.out) / CELL_FILE if c.on is None
+                else c.path(self.out).with_suffix(".sweep.json"))
+        atomic_write_text(path, json.dumps({"cell": c.name, **r}, indent=1))
+
+    def _summary(self, results: dict, wall: float, interrupted: bool) -> dict:
+        return {"grid": self.grid.name, "grid_file": str(self.grid.path),
+                "out": str(self.out), "workers": self.slots, "address": self.address,
+                "wall_clock_s": round(wall, 1), "interrupted": interrupted,
+                "cells": {c.name: results.get(c, {"status": cell_status(c, self.grid, self.out)})
+                          for c in self.grid.cells}}
+
+
+class _ProgressView:
+    """A rich view across the grid: cells done / running / failed and an ETA from the
+    median wall clock of the cells finished so far."""
+
+    def __init__(self, total: int, skipped: int, conflicts: int, slots: int, enabled: bool):
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, \
+            TimeElapsedColumn
+
+        self.console = Console(stderr=True)
+        self.slots, self.walls = slots, []
+        self.n = {"done": skipped, "failed": conflicts, "running": 0}
+        self.total = total
+        self.bar = Progress(TextColumn("[bold]grid"), BarColumn(), MofNCompleteColumn(),
+                            TextColumn("{task.fields[state]}"), TimeElapsedColumn(),
+                            TextColumn("ETA {task.fields[eta]}"), console=self.console,
+                            disable=not enabled)
+        self.task = self.bar.add_task("grid", total=total, completed=skipped + conflicts,
+                                      state=self._state(), eta="-")
+        if skipped:
+            self.log(f"{skipped} finished cell(s) skipped")
+
+    def __enter__(self):
+        self.bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        return self.bar.__exit__(*exc)
+
+    def _state(self) -> str:
+        return (f"done {self.n['done']} · running {self.n['running']} · "
+                f"failed {self.n['failed']}")
+
+    def log(self, text: str) -> None:
+        self.console.log(text)
+
+    def update(self, running: int) -> None:
+        import statistics
+
+        self.n["running"] = running
+        left = self.total - self.n["done"] - self.n["failed"]
+        eta = "-"
+        if self.walls and left:
+            s = statistics.median(self.walls) * -(-left // self.slots)
+            eta = time.strftime("%H:%M:%S", time.gmtime(s))
+        self.bar.update(self.task, state=self._state(), eta=eta)
+
+    def finished(self, cell: Cell, r: dict) -> None:
+        self.n["done" if r["status"] == "done" else "failed"] += 1
+        if r.get("rc") is not None:
+            self.walls.append(r["wall_s"])
+        self.bar.advance(self.task)
+        colour = "green" if r["status"] == "done" else "red"
+        why = "" if r["status"] == "done" else f", exit code {r['rc']} {r.get('message', '')}"
+        self.log(f"[{colour}]{r['status']}[/] {cell.name} ({r['wall_s']:.0f} s"
+                 f"{', resumed' if r.get('resumed') else ''}{why.rstrip()})")
