@@ -195,6 +195,7 @@ class WindowInstallEnv(gym.Env):
         self._sim_unstable = False
         self._suction_lockout = False
         self._suction_failures = 0
+        self._suction_releases = 0
         self._needs_reset = True
 
     # ------------------------------------------------------------------ postures
@@ -275,6 +276,7 @@ class WindowInstallEnv(gym.Env):
         self._sim_unstable = False
         self._suction_lockout = False
         self._suction_failures = 0
+        self._suction_releases = 0
         self._warnings = int(d.warning.number.sum())
         self._needs_reset = False
         self.osc.max_abs_tau[:] = 0
@@ -371,8 +373,10 @@ class WindowInstallEnv(gym.Env):
             self._suction_lockout = False
         if g and not self._latched and not self._suction_lockout and self.suction_valid():
             self._set_latch(True)
-        elif not g and self._latched:
+        released = not g and self._latched
+        if released:
             self._set_latch(False)
+            self._suction_releases += 1
         qpos0 = d.qpos.copy()
         self.osc.run(d, S.CONTROL_SUBSTEPS,
                      payload_body=sc.panel_body if self._latched else -1,
@@ -418,6 +422,9 @@ class WindowInstallEnv(gym.Env):
         reward = 1.0 if accepted else 0.0
         info = self._info(acc)
         info["suction_failed"] = suction_failed
+        # Why suction was lost on this step: the vacuum commanded off, or the grip broke at
+        # the holding limit (pull-off force, shear or peel moment).
+        info["suction_loss"] = "grip_break" if suction_failed else "commanded" if released else ""
         # The label this episode gets if it ends now: valid on whichever step a wrapper
         # (e.g. gym.make(..., max_episode_steps=N)) or the env's own horizon ends it.
         if self.terminate_on_acceptance or accepted:
@@ -480,6 +487,8 @@ class WindowInstallEnv(gym.Env):
             # The same keys at reset and at every step (Minari requires it).
             "suction_failed": False,
             "suction_failures": self._suction_failures,
+            "suction_loss": "",
+            "suction_releases": self._suction_releases,
             "failure_mode": "",
             "accepted": False,
             "is_success": False,

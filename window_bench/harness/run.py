@@ -208,7 +208,10 @@ def _eval_worker(task) -> list[dict]:
                      "cycle_time_s": round(log.T * STEP_DT, 1),
                      "suction_acquired": bool(info["suction_acquired"]),
                      "insertion_entered": bool(info["insertion_entered"]),
-                     "failure_mode": "" if log.terminated[-1] else (info["failure_mode"] or "timeout")})
+                     "failure_mode": "" if log.terminated[-1] else (info["failure_mode"] or "timeout"),
+                     # suction lost by a vacuum-off command vs grips broken at the holding limit
+                     "commanded_releases": int(info["suction_releases"]),
+                     "grip_breaks": int(info["suction_failures"])})
     env.close()
     return rows
 
@@ -224,10 +227,20 @@ def summarize_eval(rows: list[dict]) -> dict:
     cycles = [r["cycle_time_s"] for r in rows if r["success"]]
     modes = Counter(r["failure_mode"] for r in rows if not r["success"])
     ratio = lambda a, b: (a / b) if b else None  # noqa: E731
+    # Rows written before the env reported the cause of a suction loss count as neither.
+    broke = [r.get("grip_breaks", 0) > 0 for r in rows]
+    released = [r.get("commanded_releases", 0) > 0 for r in rows]
+    lost = [r["failure_mode"] == "suction_lost" and not r["success"] for r in rows]
     return {"episodes": n, "successes": k, "success_rate": k / n, "wilson95": [lo, hi],
             "cycle_time_s": float(np.mean(cycles)) if cycles else None,
             "pr_S": ratio(s, n), "pr_I_given_S": ratio(i, s), "pr_T_given_I": ratio(t, i),
-            "failure_modes": {m: modes[m] for m in FAILURE_MODES if modes.get(m)}}
+            "failure_modes": {m: modes[m] for m in FAILURE_MODES if modes.get(m)},
+            "episodes_with_commanded_release": sum(released),
+            "episodes_with_grip_break": sum(broke),
+            # suction_lost failures by cause: any grip break, else commanded releases only
+            "suction_lost_by": {"grip_break": sum(x and b for x, b in zip(lost, broke)),
+                                "commanded": sum(x and c and not b
+                                                 for x, c, b in zip(lost, released, broke))}}
 
 
 def time_to_threshold(rates: list[float], steps: list[int], threshold: float = 0.95,
