@@ -545,6 +545,15 @@ class WindowInstallEnv(gym.Env):
                 r.close()
         self._renderer = self._render_renderer = None
 
+    # ------------------------------------------------------------------ pickling
+    def __getstate__(self) -> dict:
+        """Everything but the renderers (GL contexts, rebuilt on first use). MjModel and
+        MjData pickle whole, the randomized model values and the solver's warm start
+        included, so a copy taken mid-episode continues bit-identically."""
+        state = self.__dict__.copy()
+        state["_renderer"] = state["_render_renderer"] = None
+        return state
+
     # ------------------------------------------------------------------ privileged access
     def panel_pose(self) -> tuple[np.ndarray, np.ndarray]:
         d, sc = self.data, self.scene

@@ -507,6 +507,17 @@ class Scene:
     cfg: SceneConfig
     model: mujoco.MjModel = field(init=False)
 
+    def __getstate__(self) -> dict:
+        # MjSpec does not pickle; the compiled model does (with any run-time edits, such as
+        # the randomized frictions), and the spec is rebuilt from the config on load.
+        state = self.__dict__.copy()
+        del state["spec"]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.spec = build_spec(self.cfg)
+
     def __post_init__(self):
         self.spec = build_spec(self.cfg)
         self.model = self.spec.compile()
