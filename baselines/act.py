@@ -54,6 +54,8 @@ import torch
 from torch import nn
 
 from window_bench.data.steplog import ACTION_DIM, EpisodeLog
+from window_bench.harness.agent import (Agent, AgentSpec, generator_state, load_optimizer_state,
+                                        module_state, optimizer_state, with_overrides)
 
 #: Number of leading floats of the ``flat`` observation that belong to the robot: the
 #: ``robot0_*`` entries of ``window_bench.envs.env.STATE_KEYS`` (7 + 7 + 3 + 4 + 1 + 18).
@@ -143,6 +145,9 @@ def _check_int(name: str, v, lo: int) -> None:
     if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < lo:
         raise ValueError(f"{name} = {v!r} is not allowed: must be an integer >= {lo}")
 
+
+#: Parameter-name prefixes of the CVAE encoder (training only; not in the policy state).
+_CVAE_ENCODER = ("cls_embed", "vae_", "latent_proj.")
 
 #: Fields that do not change what is trained; a checkpoint may be loaded into an agent
 #: that sets them differently.
@@ -393,7 +398,7 @@ def _draw(stack: dict, batch_size: int, generator: np.random.Generator) -> dict:
 
 
 # ----------------------------------------------------------------------------- agent
-class ACTAgent:
+class ACTAgent(Agent):
     """ACT trained offline on step logs; acts in chunks (or with temporal ensembling).
 
     Parameters
@@ -447,6 +452,29 @@ class ACTAgent:
     def h(self) -> int:
         """Actions the harness executes per :meth:`act` call: ``chunk``, or 1 with ensembling."""
         return 1 if self.config.temporal_ensembling else self.config.chunk
+
+    # ------------------------------------------------------------------ the harness's interface
+    own_normalizer = True   # z-scores observations and actions with its own demo statistics
+
+    @classmethod
+    def create(cls, spec: AgentSpec) -> "ACTAgent":
+        """The profile's ACT sizes (:data:`ACT_PROFILES`), its normaliser fitted on the demos."""
+        agent = cls(spec.obs_dim, spec.action_dim,
+                    with_overrides(ACT_PROFILES[spec.profile.name], spec.overrides), seed=spec.seed)
+        agent.fit_normalizer(spec.demos)
+        return agent
+
+    @property
+    def offline_steps(self) -> int:
+        return self.config.offline_steps
+
+    def attach_demos(self, demos) -> None:
+        self._demo_stack = _stack_episodes(demos, self.obs_dim, self.config.chunk)
+
+    def learn(self, sample) -> tuple[dict[str, float], int]:
+        """One :meth:`update` on ``batch_size`` chunks of the demos (:meth:`attach_demos`);
+        ACT trains on D_demo only, so the harness's ``sample`` is not used."""
+        return self.update(_draw(self._demo_stack, self.config.batch_size, self.rng)), 1
 
     # ------------------------------------------------------------------ normalisation
     def fit_normalizer(self, episodes) -> None:
@@ -600,10 +628,31 @@ class ACTAgent:
         return copy.deepcopy({
             "config": asdict(self.config), "obs_dim": self.obs_dim,
             "action_dim": self.action_dim, "seed": self.seed,
-            "model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
-            "norm": self.norm, "rng": self.rng.bit_generator.state,
+            "model": module_state(self.model), "optimizer": optimizer_state(self.optimizer),
+            "norm": self.norm, "rng": generator_state(self.rng),
             "torch_rng": self._torch_rng, "grad_steps": self.grad_steps,
         })
+
+    def policy_state_dict(self) -> dict:
+        """What acting needs: the policy's weights (not the CVAE encoder, which only
+        training runs), the normaliser, sizes and config."""
+        return copy.deepcopy({
+            "config": asdict(self.config), "obs_dim": self.obs_dim,
+            "action_dim": self.action_dim, "seed": self.seed, "norm": self.norm,
+            "model": {k: v for k, v in module_state(self.model).items()
+                      if not k.startswith(_CVAE_ENCODER)}})
+
+    @classmethod
+    def from_policy_state_dict(cls, sd: dict) -> "ACTAgent":
+        """An agent that acts like the one :meth:`policy_state_dict` came from (its CVAE
+        encoder keeps its initial weights: for acting only)."""
+        agent = cls(sd["obs_dim"], sd["action_dim"], ACTConfig(**sd["config"]), seed=sd["seed"])
+        missing = agent.model.load_state_dict(sd["model"], strict=False).missing_keys
+        if any(not k.startswith(_CVAE_ENCODER) for k in missing):
+            raise ValueError(f"ACTAgent.from_policy_state_dict: policy weights missing: "
+                             f"{[k for k in missing if not k.startswith(_CVAE_ENCODER)]}")
+        agent.norm = copy.deepcopy(sd["norm"])
+        return agent
 
     @classmethod
     def from_state_dict(cls, sd: dict) -> "ACTAgent":
@@ -631,7 +680,7 @@ class ACTAgent:
                              f"(checkpoint, this agent): {diff}")
         sd = copy.deepcopy(sd)
         self.model.load_state_dict(sd["model"])
-        self.optimizer.load_state_dict(sd["optimizer"])
+        load_optimizer_state(self.optimizer, sd["optimizer"])
         self.norm = sd["norm"]
         self.rng = np.random.default_rng()
         self.rng.bit_generator.state = sd["rng"]

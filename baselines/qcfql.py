@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import copy
 import numbers
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Mapping
 
 import numpy as np
@@ -47,6 +47,8 @@ from torchrl.modules import MLP
 
 from window_bench.envs.env import VACUUM_THRESHOLD
 from window_bench.data.replay import PROVENANCE_CODES
+from window_bench.harness.agent import (Agent, AgentSpec, config_from_plain, load_optimizer_state,
+                                        module_state, optimizer_state, plain, with_overrides)
 
 #: Bound on normalised observations (in demo standard deviations).
 OBS_CLIP = 10.0
@@ -335,10 +337,10 @@ BATCH_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount",
 
 def _config_from(saved: dict) -> QCFQLConfig:
     """A config from a saved dict; fields added since it was saved take their defaults."""
-    return QCFQLConfig(**{f.name: saved[f.name] for f in fields(QCFQLConfig) if f.name in saved})
+    return config_from_plain(QCFQLConfig, saved)
 
 
-class QCFQLAgent:
+class QCFQLAgent(Agent):
     """QC-FQL agent: critic ensemble, flow teacher, one-step student.
 
     Parameters
@@ -407,6 +409,26 @@ class QCFQLAgent:
         # separate streams: evaluation rollouts do not shift the training noise
         self.act_generator = torch.Generator().manual_seed(self.seed + 1)
         self.update_generator = torch.Generator().manual_seed(self.seed + 2)
+
+    # ------------------------------------------------------------------ the harness's interface
+    @classmethod
+    def create(cls, spec: AgentSpec) -> "QCFQLAgent":
+        cfg = with_overrides(QCFQLConfig(h=spec.h, hidden=tuple(spec.profile.hidden),
+                                         batch_size=spec.profile.batch_size), spec.overrides)
+        return cls(spec.obs_dim, spec.action_dim, cfg, seed=spec.seed, obs_mean=spec.obs_mean,
+                   obs_std=spec.obs_std)
+
+    @property
+    def h(self) -> int:
+        return self.config.h
+
+    @property
+    def gamma(self) -> float:
+        return self.config.gamma
+
+    def learn(self, sample) -> tuple[dict[str, float], int]:
+        """One :meth:`update` on one batch."""
+        return self.update(sample()), 1
 
     # ------------------------------------------------------------------ helpers
     def normalize(self, obs: torch.Tensor) -> torch.Tensor:
@@ -629,16 +651,28 @@ class QCFQLAgent:
         """Everything for an exact resume (copies): config, dims, seed, the six networks,
         the optimizer, both noise generators, the normaliser and the update count."""
         return copy.deepcopy({
-            "config": asdict(self.config), "obs_dim": self.obs_dim,
-            "action_dim": self.action_dim, "seed": self.seed, "num_updates": self.num_updates,
-            "obs_mean": self.obs_mean, "obs_std": self.obs_std,
-            "critic": self.critic.state_dict(), "target_critic": self.target_critic.state_dict(),
-            "teacher": self.teacher.state_dict(), "student": self.student.state_dict(),
-            "ema_teacher": self.ema_teacher.state_dict(),
-            "ema_student": self.ema_student.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
+            **self.policy_state_dict(), "num_updates": self.num_updates,
+            **{name: module_state(getattr(self, name)) for name in (
+                "critic", "target_critic", "teacher", "student", "ema_teacher")},
+            "optimizer": optimizer_state(self.optimizer),
             "act_generator": self.act_generator.get_state(),
             "update_generator": self.update_generator.get_state()})
+
+    def policy_state_dict(self) -> dict:
+        """The acting policy only: the averaged student, the normaliser, sizes and config."""
+        return {"config": plain(asdict(self.config)), "obs_dim": self.obs_dim,
+                "action_dim": self.action_dim, "seed": self.seed,
+                "obs_mean": self.obs_mean.clone(), "obs_std": self.obs_std.clone(),
+                "ema_student": module_state(self.ema_student)}
+
+    @classmethod
+    def from_policy_state_dict(cls, sd: dict) -> "QCFQLAgent":
+        """An agent that acts like the one :meth:`policy_state_dict` came from (its other
+        networks keep their initial weights: for acting only)."""
+        agent = cls(sd["obs_dim"], sd["action_dim"], _config_from(sd["config"]), seed=sd["seed"])
+        agent.obs_mean, agent.obs_std = sd["obs_mean"].clone(), sd["obs_std"].clone()
+        agent.ema_student.load_state_dict(sd["ema_student"])
+        return agent
 
     def load_state_dict(self, sd: dict) -> None:
         """Restore :meth:`state_dict` output. The network structure (obs_dim, action_dim, h,
@@ -660,7 +694,7 @@ class QCFQLAgent:
             getattr(self, name).load_state_dict(sd[name])
         for name in ("teacher", "student"):   # states saved before policy_ema act raw
             getattr(self, f"ema_{name}").load_state_dict(sd.get(f"ema_{name}", sd[name]))
-        self.optimizer.load_state_dict(sd["optimizer"])
+        load_optimizer_state(self.optimizer, sd["optimizer"])
         self.act_generator.set_state(sd["act_generator"])
         self.update_generator.set_state(sd["update_generator"])
 

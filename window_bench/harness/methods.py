@@ -5,13 +5,16 @@ component flags, and the run profiles (``paper``, ``cpu``, ``smoke``).
 (``qcfql``; the external baselines come with their own agents) and which protocol
 components are on: demonstrations, offline pretraining (Stage I), the non-updating warm
 start (Stage II), online RL updates (Stage III), installer takeovers, and the chunk
-horizon ``h``.
+horizon ``h``. :data:`AGENTS` maps each agent kind to the class that implements
+:class:`window_bench.harness.agent.Agent`; a new method is a new row here (and, for a new
+learner, a new entry in :data:`AGENTS`), never a change to the harness.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from importlib import import_module
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,29 @@ METHODS: dict[str, Method] = {m.name: m for m in (   # in the order of Table 1
     Method("qcfql-no-intervention", "Ours (w/o intervention)", "qcfql", 10, interventions=False),
     Method("qcfql", "Ours (complete pipeline)", "qcfql", 10),
 )}
+
+
+#: Agent kind -> the class implementing ``window_bench.harness.agent.Agent``, as
+#: ``"module:Class"`` (imported on first use, so ``bench methods`` loads no learner) or the
+#: class itself (a learner registered at run time, e.g. in a test).
+AGENTS: dict[str, str | type] = {
+    "qcfql": "baselines.qcfql:QCFQLAgent",
+    "hilserl": "baselines.hilserl:HILSERLAgent",
+    "act": "baselines.act:ACTAgent",
+    "sac": "baselines.sac:SACAgent",
+}
+
+
+def agent_class(kind: str) -> type:
+    """The agent class registered for ``kind``."""
+    try:
+        entry = AGENTS[kind]
+    except KeyError:
+        raise ValueError(f"unknown agent kind {kind!r}; registered: {', '.join(AGENTS)}") from None
+    if isinstance(entry, str):
+        module, name = entry.split(":")
+        entry = getattr(import_module(module), name)
+    return entry
 
 
 def get_method(name: str) -> Method:
