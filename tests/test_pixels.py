@@ -42,6 +42,9 @@ def test_shapes(backbone):
     assert out[:, :2 * EMBED_DIM].abs().max() < 1.0          # tanh embeddings
     with pytest.raises(ValueError, match="expected"):
         enc(torch.zeros(5, OBS_DIM - 1))
+    maps, _ = split_observation(_random_obs(5))
+    view = enc.views[0]
+    torch.testing.assert_close(view(maps[0]), view.unfolded(maps[0]), atol=1e-5, rtol=1e-4)
     with pytest.raises(ValueError, match=r"\(B, H, W, 3\)"):
         backbone(torch.zeros(1, 3, 128, 128, dtype=torch.uint8))
 
