@@ -251,3 +251,28 @@ def test_pixel_smoke_pipeline_is_deterministic(backbone):
     np.testing.assert_array_equal(a[0], b[0])
     for sa, sb in zip(a[1:], b[1:]):
         assert all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_heldout_quality_reports_against_the_mean_predictor():
+    from window_bench.pixels.pretrain import GROUPS, TARGETS, heldout_quality
+
+    rng = np.random.default_rng(0)
+    truth = rng.standard_normal((50, len(TARGETS)))
+    mean = truth.mean(0)
+    perfect = heldout_quality(truth, truth, mean)
+    blind = heldout_quality(np.tile(mean, (50, 1)), truth, mean)
+    assert set(perfect) == set(GROUPS)
+    for name in GROUPS:
+        assert perfect[name]["rmse"] == 0.0 and perfect[name]["r2"] == pytest.approx(1.0)
+        assert blind[name]["rmse"] == pytest.approx(blind[name]["rmse_mean_predictor"])
+        assert blind[name]["r2"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_cli_encoder_train_rejects_bad_arguments_before_work(capsys):
+    from window_bench.cli import main
+
+    for argv in (["--episodes", "0"], ["--lr", "2"], ["--seed", "-1"], ["--env", "Nope-v0"]):
+        with pytest.raises(SystemExit) as exc:
+            main(["encoder", "train", "--out", "x.safetensors", *argv])
+        assert exc.value.code == 2
+    assert "error" in capsys.readouterr().err

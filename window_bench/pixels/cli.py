@@ -49,10 +49,12 @@ def cmd_encoder_train(args) -> int:
     torch.set_num_threads(1)
     command = (f"bench encoder train --env {' '.join(args.env)} --episodes {args.episodes} "
                f"--heldout-episodes {args.heldout_episodes} --every {args.every} "
+               f"--max-steps {args.max_steps} "
                f"--epochs {args.epochs} --batch {args.batch} --lr {args.lr} --seed {args.seed}"
                + (f" --max-minutes {args.max_minutes}" if args.max_minutes else ""))
     record = pretrain_encoder(args.out, env_ids=args.env, episodes=args.episodes,
                               heldout_episodes=args.heldout_episodes, every=args.every,
+                              max_steps=args.max_steps,
                               epochs=args.epochs, batch=args.batch, lr=args.lr,
                               seed=args.seed, max_minutes=args.max_minutes,
                               command=command)
@@ -98,7 +100,8 @@ def add_encoder_parser(sub) -> None:
                    default=["WindowInstall-A-v0", "WindowInstall-B-v0"])
     t.add_argument("--episodes", type=_positive, default=64, help="training episodes")
     t.add_argument("--heldout-episodes", type=_positive, default=12)
-    t.add_argument("--every", type=_positive, default=3, help="keep every n-th step's frames")
+    t.add_argument("--every", type=_positive, default=4, help="keep every n-th step's frames")
+    t.add_argument("--max-steps", type=_positive, default=200, help="steps per episode at most")
     t.add_argument("--epochs", type=_positive, default=2)
     t.add_argument("--batch", type=_positive, default=32, help="frames per step (2 views each)")
     t.add_argument("--lr", type=_learning_rate, default=2e-3)

@@ -58,14 +58,15 @@ def privileged_state(env) -> np.ndarray:
                            t_mat.T @ (p_pos - t_pos), [float(u.suction_engaged)]])
 
 
-def collect(env_ids: list[str], episodes: int, seed: int, every: int,
+def collect(env_ids: list[str], episodes: int, seed: int, every: int, max_steps: int = 200,
             noise: float = 0.5, desc: str = "frames") -> dict[str, np.ndarray]:
     """Rendered frames and privileged states of ``episodes`` scripted episodes (env ids
-    taken in turn, seeds ``seed .. seed + episodes - 1``). Odd episodes add N(0, noise^2)
-    to the motion commands on a random 30 % of steps."""
+    taken in turn, seeds ``seed .. seed + episodes - 1``, at most ``max_steps`` steps each:
+    a noisy episode that fails would otherwise fill the data with 600 steps of one failure).
+    Odd episodes add N(0, noise^2) to the motion commands on a random 30 % of steps."""
     from window_bench.installer.scripted import ScriptedInstaller
 
-    envs = {e: gym.make(e, obs_mode="state") for e in env_ids}
+    envs = {e: gym.make(e, obs_mode="state", max_episode_steps=max_steps) for e in env_ids}
     views = {v: [] for v in VIEWS}
     states, episode = [], []
     for i in tqdm(range(episodes), desc=desc, unit="episode"):
@@ -201,8 +202,9 @@ def train(train_data: dict, epochs: int, batch: int, lr: float, seed: int,
 
 
 def pretrain_encoder(out, env_ids=("WindowInstall-A-v0", "WindowInstall-B-v0"),
-                     episodes: int = 80, heldout_episodes: int = 16, every: int = 3,
-                     epochs: int = 2, batch: int = 32, lr: float = 2e-3, seed: int = 0,
+                     episodes: int = 64, heldout_episodes: int = 12, every: int = 4,
+                     max_steps: int = 200, epochs: int = 2, batch: int = 32,
+                     lr: float = 2e-3, seed: int = 0,
                      max_minutes: float | None = None, command: str = "") -> dict:
     """Collect, train, evaluate on held-out episodes and write the backbone to ``out``;
     returns the record stored in the file's metadata."""
@@ -211,9 +213,9 @@ def pretrain_encoder(out, env_ids=("WindowInstall-A-v0", "WindowInstall-B-v0"),
 
     env_ids = list(env_ids)
     t0 = time.perf_counter()
-    train_data = collect(env_ids, episodes, seed, every, desc="train frames")
+    train_data = collect(env_ids, episodes, seed, every, max_steps, desc="train frames")
     test_data = collect(env_ids, heldout_episodes, seed + HELDOUT_SEED_OFFSET, every,
-                        desc="held-out frames")
+                        max_steps, desc="held-out frames")
     collect_s = time.perf_counter() - t0
     backbone, head, record = train(train_data, epochs, batch, lr, seed, max_minutes)
     quality = heldout_quality(predict(backbone, head, test_data), test_data["state"],
@@ -228,7 +230,7 @@ def pretrain_encoder(out, env_ids=("WindowInstall-A-v0", "WindowInstall-B-v0"),
                     "seeds": [seed + HELDOUT_SEED_OFFSET,
                               seed + HELDOUT_SEED_OFFSET + heldout_episodes - 1],
                     "frames": len(test_data["state"])},
-        "every": every, "epochs": epochs, "batch": batch, "lr": lr,
+        "every": every, "max_steps": max_steps, "epochs": epochs, "batch": batch, "lr": lr,
         "collect_seconds": round(collect_s, 1), "heldout_quality": quality,
         "provenance": provenance()})
     record["bytes"] = save_backbone(backbone, out, record)
