@@ -11,34 +11,17 @@ import json
 import sys
 
 
-def _learning_rate(value: str) -> float:
-    try:
-        v = float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {value!r}") from None
-    if not 0.0 < v <= 1.0:
-        raise argparse.ArgumentTypeError(f"learning rate {v} is outside (0, 1]")
-    return v
-
-
-def _minutes(value: str) -> float:
-    try:
-        v = float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {value!r}") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0 minutes, got {v}")
-    return v
-
-
-def _seed(value: str) -> int:
-    try:
-        v = int(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {v}")
-    return v
+def _number_in(upper: float):
+    """A number in (0, upper]: checked by argparse, before any work."""
+    def parse(value: str) -> float:
+        try:
+            v = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {value!r}") from None
+        if not 0.0 < v <= upper:
+            raise argparse.ArgumentTypeError(f"{v} is outside (0, {upper}]")
+        return v
+    return parse
 
 
 def cmd_encoder_train(args) -> int:
@@ -88,14 +71,15 @@ def cmd_encoder_info(args) -> int:
 
 def add_encoder_parser(sub) -> None:
     from window_bench import ENV_IDS
-    from window_bench.cli import _positive
+    from window_bench.cli import _out_file, _positive, _seed
 
     enc = sub.add_parser("encoder", help="the pixel track's backbone: pretrain it in-domain "
                                          "or inspect a weights file")
     esub = enc.add_subparsers(dest="encoder_command", required=True)
     t = esub.add_parser("train", help="pretrain the ResNet-10 on rendered frames of "
                                       "scripted-installer episodes (docs/pixels.md)")
-    t.add_argument("--out", required=True, help="weights file to write (.safetensors)")
+    t.add_argument("--out", required=True, type=_out_file,
+                   help="weights file to write (.safetensors)")
     t.add_argument("--env", nargs="+", choices=ENV_IDS,
                    default=["WindowInstall-A-v0", "WindowInstall-B-v0"])
     t.add_argument("--episodes", type=_positive, default=64, help="training episodes")
@@ -104,9 +88,9 @@ def add_encoder_parser(sub) -> None:
     t.add_argument("--max-steps", type=_positive, default=200, help="steps per episode at most")
     t.add_argument("--epochs", type=_positive, default=2)
     t.add_argument("--batch", type=_positive, default=32, help="frames per step (2 views each)")
-    t.add_argument("--lr", type=_learning_rate, default=2e-3)
+    t.add_argument("--lr", type=_number_in(1.0), default=2e-3)
     t.add_argument("--seed", type=_seed, default=0)
-    t.add_argument("--max-minutes", type=_minutes, default=None,
+    t.add_argument("--max-minutes", type=_number_in(float("inf")), default=None,
                    help="stop training after this many minutes (the record says so)")
     t.set_defaults(func=cmd_encoder_train)
     i = esub.add_parser("info", help="load a weights file as the pixel track would and "
