@@ -30,7 +30,9 @@ Usage::
     MUJOCO_GL=egl python benchmarks/env_speed.py [--env WindowInstall-A-v0] [--steps 2000]
         [--repeats 5] [--pixel-steps 100]
 
-Results go to ``benchmarks/results/env_speed.json`` (written atomically).
+Results go to ``--out`` (default ``runs/benchmarks/env_speed.json``, untracked; written
+atomically); ``benchmarks/results/env_speed.json`` is the tracked run that ``docs/speed.md``
+quotes.
 """
 
 from __future__ import annotations
@@ -291,16 +293,21 @@ def write_json_atomic(path: Path, payload: dict) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--env", default="WindowInstall-A-v0")
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--env", default="WindowInstall-A-v0", choices=window_bench.ENV_IDS,
+                   help="registered env id")
     p.add_argument("--steps", type=int, default=2000, help="timed env steps per repeat (state mode)")
-    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--repeats", type=int, default=5, help="repeats; medians over them are reported")
     p.add_argument("--warmup", type=int, default=100, help="untimed env steps before timing")
     p.add_argument("--pixel-steps", type=int, default=100,
                    help="timed env steps per repeat in pixel mode (0 skips it)")
-    p.add_argument("--image-size", type=int, default=128)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "env_speed.json")
+    p.add_argument("--image-size", type=int, default=128, help="camera image side in pixel mode")
+    p.add_argument("--seed", type=int, default=0, help="reset seed")
+    # The tracked results file changes only when asked for by name.
+    p.add_argument("--out", type=Path, default=ROOT / "runs" / "benchmarks" / "env_speed.json",
+                   help="JSON file to write; benchmarks/results/env_speed.json is the "
+                        "tracked one quoted in docs/speed.md")
     args = p.parse_args(argv)
     if args.steps < 1 or args.repeats < 1:
         p.error("--steps and --repeats must be >= 1")

@@ -460,7 +460,10 @@ def build_spec(cfg: SceneConfig) -> mujoco.MjSpec:
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
     spec.option.impratio = 5
-    spec.option.jacobian = mujoco.mjtJacobian.mjJAC_DENSE  # mujoco 4.0.0's sparse Cholesky bug
+    # Constraint Jacobian left at "auto", which MuJoCo resolves to dense up to 60 dofs (we
+    # have 13): the same trajectories, bit for bit, as the explicit dense setting that worked
+    # around mujoco 4.0.0's sparse-Cholesky bug, and faster here than sparse
+    # (benchmarks/physics_compare.py, docs/speed.md).
     spec.option.noslip_iterations = 0
     # MuJoCo clamps solref time constants below 2 x timestep unless this flag is off. At a
     # 1 ms timestep the clamp (2 ms) sits exactly at Table 9's lower bound; we turn it off so
