@@ -90,16 +90,17 @@ def bytes_per_chunk(rb: ChunkReplay) -> int:
     return int(sum(v.element_size() * v[0].numel() for v in sample.values()))
 
 
-def cpu_profile_memory(per_chunk: dict[str, int]) -> list[dict]:
+def cpu_profile_memory(per_chunk: dict[str, int], demo_steps: int) -> list[dict]:
     """Preallocated replay bytes of a ``cpu``-profile run, as the harness sizes its buffers
-    (online: budget // h + 2 x max episode steps chunks; demo: at most n_demos x
-    ceil(max_steps / h) chunks, plus the budget for HIL-SERL, whose takeovers join D_demo)."""
+    (online: budget // h + 2 x max episode steps chunks; demo: n_demos x
+    ceil(demo_steps / h) chunks, plus the budget for HIL-SERL, whose takeovers join D_demo).
+    Observations dominate a chunk, so the bytes of an h = 10 chunk serve for h = 1 too."""
     p = PROFILES["cpu"]
     rows = []
     for label, h, hil in (("qcfql (h = 10)", 10, False), ("step-wise, h = 1", 1, False),
                           ("hil-serl (h = 1)", 1, True)):
         online = p.budget_steps // h + 2 * p.max_episode_steps
-        demo = p.n_demos * -(-p.max_episode_steps // h) + (p.budget_steps if hil else 0)
+        demo = p.n_demos * -(-demo_steps // h) + (p.budget_steps if hil else 0)
         rows.append({"run": label, "chunks": online + demo,
                      **{f"{k}_GiB": round((online + demo) * v / 2 ** 30, 2)
                         for k, v in per_chunk.items()}})
@@ -116,6 +117,8 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=256)
     ap.add_argument("--h", type=int, default=10)
     ap.add_argument("--encoder-weights", default=None)
+    ap.add_argument("--demo-steps", type=int, default=600,
+                    help="steps per demonstration for the memory estimate (600: the bound)")
     ap.add_argument("--out", default="benchmarks/results/pixel_speed.json")
     args = ap.parse_args(argv)
     for name in ("repeats", "steps", "updates", "batch", "h"):
@@ -161,7 +164,8 @@ def main(argv=None) -> int:
     per_chunk = {"float32": result["bytes_per_chunk"]["pixels"],
                  "float16_features": result["bytes_per_chunk"]["pixels"]
                  - 2 * 2 * 2 * VIEW_FEATURES}   # obs + next_obs, 2 views, 2 bytes saved each
-    result["cpu_profile_replay"] = cpu_profile_memory(per_chunk)
+    result["cpu_profile_replay"] = cpu_profile_memory(per_chunk, args.demo_steps)
+    result["demo_steps"] = args.demo_steps
     for env in envs.values():
         env.close()
     atomic_write_text(args.out, json.dumps(result, indent=1))

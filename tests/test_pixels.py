@@ -276,3 +276,38 @@ def test_cli_encoder_train_rejects_bad_arguments_before_work(capsys):
             main(["encoder", "train", "--out", "x.safetensors", *argv])
         assert exc.value.code == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_pixel_demos_replay_the_state_demos_exactly(backbone):
+    """A state-track episode re-observed on the pixel track: same steps, the proprioception
+    equals the flat state's robot0_proprio, and a log that does not replay is refused."""
+    import dataclasses
+
+    import gymnasium as gym
+
+    from window_bench.envs.env import STATE_KEYS
+    from window_bench.installer.rollout import Rollout
+    from window_bench.installer.scripted import RandomPolicy
+    from window_bench.pixels.track import (check_track, make_track_env, pixel_demos,
+                                           proprio_normalizer)
+
+    env = make_track_env(ENV, "state", max_episode_steps=4)
+    log = Rollout(env, RandomPolicy(env, seed=0), provenance="demo").run(seed=21)
+    env.close()
+    [pix] = pixel_demos([log], ENV, backbone)
+    assert pix.observations.shape == (log.T + 1, OBS_DIM)
+    np.testing.assert_array_equal(pix.actions, log.actions)
+    sizes = dict(zip(STATE_KEYS, (7, 7, 3, 4, 1, 18, 3, 3, 6)))
+    start = sum(sizes[k] for k in STATE_KEYS[:STATE_KEYS.index("robot0_proprio")])
+    np.testing.assert_allclose(pix.observations[:, -PROPRIO_DIM:],
+                               log.observations[:, start:start + PROPRIO_DIM], rtol=0, atol=1e-6)
+    mean, std = proprio_normalizer(pix.observations)
+    assert mean.shape == std.shape == (PROPRIO_DIM,)
+    tampered = dataclasses.replace(log, rewards=log.rewards + 1.0)
+    with pytest.raises(RuntimeError, match="diverges on replay at step 0"):
+        pixel_demos([tampered], ENV, backbone)
+    with pytest.raises(ValueError, match="allowed: state, pixels"):
+        check_track("rgb")
+    with pytest.raises(ValueError, match="needs the frozen backbone"):
+        make_track_env(ENV, "pixels")
+    assert isinstance(make_track_env(ENV, "state").observation_space, gym.spaces.Box)

@@ -1,0 +1,71 @@
+"""The observation tracks as the harness needs them: envs, demonstrations, agents.
+
+``state`` is the privileged 52-float ``obs_mode="flat"`` observation every result so far
+uses; ``pixels`` is the paper's (two 128 x 128 views + 18 proprioceptive values through the
+frozen ResNet-10, :class:`~window_bench.pixels.features.PixelFeatures`). These functions
+keep the track out of the harness's logic: it asks for an env, the demonstrations and an
+agent of a track and gets objects with the same interfaces on both.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gymnasium as gym
+import numpy as np
+
+from window_bench.pixels.encoder import PROPRIO_DIM
+
+TRACKS = ("state", "pixels")
+TRACK_LABELS = {"state": "privileged state", "pixels": "pixels (2 x RGB 128² + proprioception)"}
+
+
+def check_track(track: str) -> str:
+    if track not in TRACKS:
+        raise ValueError(f"track={track!r}; allowed: {', '.join(TRACKS)}")
+    return track
+
+
+def make_track_env(env_id: str, track: str, backbone=None, **kwargs) -> gym.Env:
+    """``gym.make(env_id, obs_mode="flat", **kwargs)`` for ``state``; the env wrapped in
+    :class:`PixelFeatures` with ``backbone`` for ``pixels``."""
+    if check_track(track) == "state":
+        return gym.make(env_id, obs_mode="flat", **kwargs)
+    if backbone is None:
+        raise ValueError("track='pixels' needs the frozen backbone (resolve_backbone)")
+    from window_bench.pixels.features import make_pixel_env
+
+    return make_pixel_env(env_id, backbone, **kwargs)
+
+
+def pixel_demos(demos: list, env_id: str, backbone, progress: bool = False) -> list:
+    """The state-track demonstrations re-observed on the pixel track: each episode's executed
+    actions replayed from its seed under :class:`PixelFeatures`. The env is deterministic and
+    rendering does not touch the physics, so the replay is the same episode; rewards and
+    terminations are checked step by step and a divergence is an error, never a silently
+    different dataset."""
+    from tqdm import tqdm
+
+    env = make_track_env(env_id, "pixels", backbone)
+    out = []
+    for ep in tqdm(demos, desc="pixel demos", unit="demo", disable=not progress):
+        obs, _ = env.reset(seed=int(ep.seed))
+        observations = [obs]
+        for t, a in enumerate(ep.actions):
+            obs, r, term, trunc, _ = env.step(a)
+            observations.append(obs)
+            if r != ep.rewards[t] or term != bool(ep.terminated[t]):
+                env.close()
+                raise RuntimeError(f"demo {ep.episode_id} (seed {ep.seed}) diverges on replay "
+                                   f"at step {t}: reward {r} vs {ep.rewards[t]}, terminated "
+                                   f"{term} vs {bool(ep.terminated[t])}")
+        out.append(dataclasses.replace(ep, observations=np.stack(observations)))
+    env.close()
+    return out
+
+
+def proprio_normalizer(pixel_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std of the proprioception (the last 18 values) of pixel observations: the
+    pixel agent's fixed normaliser, computed from the demonstrations like the state track's."""
+    p = np.asarray(pixel_obs, np.float64)[:, -PROPRIO_DIM:]
+    return p.mean(0), p.std(0)
