@@ -3,6 +3,8 @@ features and determinism (window_bench.pixels)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -83,9 +85,31 @@ def test_pixel_agent_update_keeps_backbone_and_trains_aggregation(backbone):
     assert all(torch.equal(before[k], v) for k, v in backbone.state_dict().items())
     chunk = agent.act(batch["obs"][0].numpy(), deterministic=True)
     assert chunk.shape == (2, 7)
-    clone = PixelQCFQL.from_state_dict(agent.state_dict())
-    np.testing.assert_array_equal(clone.act(batch["obs"][:3].numpy(), deterministic=True),
-                                  agent.act(batch["obs"][:3].numpy(), deterministic=True))
+    from window_bench.harness.agent import check_plain
+
+    obs3 = batch["obs"][:3].numpy()
+    for state, restore in ((agent.state_dict(), PixelQCFQL.from_state_dict),
+                           (agent.policy_state_dict(), PixelQCFQL.from_policy_state_dict)):
+        check_plain(state)                                    # writable without pickle
+        np.testing.assert_array_equal(restore(state).act(obs3, deterministic=True),
+                                      agent.act(obs3, deterministic=True))
+
+
+def test_pixel_agent_from_the_harness_spec():
+    from window_bench.harness.agent import AgentSpec
+    from window_bench.harness.methods import PROFILES
+    from window_bench.pixels.agent import PixelQCFQL
+
+    mean, std = np.zeros(OBS_DIM), np.ones(OBS_DIM)
+    mean[-PROPRIO_DIM:], std[-PROPRIO_DIM:] = 0.5, 2.0
+    spec = AgentSpec(obs_dim=OBS_DIM, action_dim=7, h=10, seed=0, profile=PROFILES["smoke"],
+                     demos=[], obs_mean=mean, obs_std=std, overrides={"alpha": 30.0})
+    agent = PixelQCFQL.create(spec)
+    assert agent.h == 10 and agent.config.alpha == 30.0
+    assert agent.config.hidden == tuple(PROFILES["smoke"].hidden)
+    assert torch.equal(agent.encoder.proprio_mean, torch.full((PROPRIO_DIM,), 0.5))
+    with pytest.raises(ValueError, match="obs_dim = 52"):
+        PixelQCFQL.create(dataclasses.replace(spec, obs_dim=52))
 
 
 def _batch(n: int, h: int) -> dict:
@@ -281,8 +305,6 @@ def test_cli_encoder_train_rejects_bad_arguments_before_work(capsys):
 def test_pixel_demos_replay_the_state_demos_exactly(backbone):
     """A state-track episode re-observed on the pixel track: same steps, the proprioception
     equals the flat state's robot0_proprio, and a log that does not replay is refused."""
-    import dataclasses
-
     import gymnasium as gym
 
     from window_bench.envs.env import STATE_KEYS

@@ -20,13 +20,15 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
-from window_bench.pixels.encoder import OBS_DIM, PixelObsEncoder
+from window_bench.harness.agent import (Agent, AgentSpec, load_optimizer_state, module_state,
+                                        optimizer_state, with_overrides)
+from window_bench.pixels.encoder import OBS_DIM, PROPRIO_DIM, PixelObsEncoder
 
 
-class PixelQCFQL:
-    """``act``/``update``/``state_dict`` as :class:`baselines.qcfql.QCFQLAgent`, on flat pixel
-    observations (``OBS_DIM`` values). ``proprio_mean``/``proprio_std``: the fixed
-    proprioception normaliser (18 values each)."""
+class PixelQCFQL(Agent):
+    """The harness's :class:`~window_bench.harness.agent.Agent` interface, as
+    :class:`baselines.qcfql.QCFQLAgent`, on flat pixel observations (``OBS_DIM`` values).
+    ``proprio_mean``/``proprio_std``: the fixed proprioception normaliser (18 values each)."""
 
     def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None):
         from baselines.qcfql import QCFQLAgent, QCFQLConfig
@@ -38,9 +40,32 @@ class PixelQCFQL:
         self.agent = QCFQLAgent(PixelObsEncoder.out_dim, 7, config, seed=seed)
         self.encoder_optimizer = torch.optim.Adam(self.encoder.parameters(), lr=config.lr)
 
+    @classmethod
+    def create(cls, spec: AgentSpec) -> "PixelQCFQL":
+        """From the harness's spec: ``obs_mean``/``obs_std`` are the demo statistics of the
+        whole pixel observation; only their proprioception part is used."""
+        from baselines.qcfql import QCFQLConfig
+
+        if spec.obs_dim != OBS_DIM:
+            raise ValueError(f"PixelQCFQL: obs_dim = {spec.obs_dim}, the pixel observation "
+                             f"has {OBS_DIM} values (PixelFeatures)")
+        cfg = with_overrides(QCFQLConfig(h=spec.h, hidden=tuple(spec.profile.hidden),
+                                         batch_size=spec.profile.batch_size), spec.overrides)
+        stats = [None if a is None else np.asarray(a)[-PROPRIO_DIM:]
+                 for a in (spec.obs_mean, spec.obs_std)]
+        return cls(cfg, spec.seed, *stats)
+
     @property
     def config(self):
         return self.agent.config
+
+    @property
+    def h(self) -> int:
+        return self.agent.config.h
+
+    @property
+    def gamma(self) -> float:
+        return self.agent.config.gamma
 
     @property
     def num_updates(self) -> int:
@@ -50,6 +75,9 @@ class PixelQCFQL:
         """Flat pixel observations (B, OBS_DIM) -> the 82-value agent input (no gradient)."""
         with torch.no_grad():
             return self.encoder(torch.as_tensor(np.asarray(obs, np.float32)).reshape(-1, OBS_DIM))
+
+    def learn(self, sample) -> tuple[dict[str, float], int]:
+        return self.update(sample()), 1
 
     def update(self, batch: Mapping) -> dict[str, float]:
         """One gradient step (critic + encoder aggregation, teacher, student) and the Polyak
@@ -72,8 +100,8 @@ class PixelQCFQL:
         self.encoder_optimizer.step()
         agent.polyak()
         with torch.no_grad():
-            for t, o in zip(self.target_encoder.parameters(), self.encoder.parameters()):
-                t.lerp_(o, agent.config.tau)
+            torch._foreach_lerp_(list(self.target_encoder.parameters()),
+                                 list(self.encoder.parameters()), agent.config.tau)
         agent.num_updates += 1
         return {"loss": loss.item(), "critic_loss": critic_loss.item(),
                 "flow_loss": flow_loss.item(), "actor_loss": actor["loss"].item(),
@@ -84,19 +112,34 @@ class PixelQCFQL:
         u = self.agent.act(self.embed(obs).numpy(), deterministic=deterministic, policy=policy)
         return u[0] if single and u.ndim == 3 else u
 
+    # ------------------------------------------------------------------ state (plain data)
     def state_dict(self) -> dict:
-        return {"agent": self.agent.state_dict(),
-                "encoder": copy.deepcopy(self.encoder.state_dict()),
-                "target_encoder": copy.deepcopy(self.target_encoder.state_dict()),
-                "encoder_optimizer": copy.deepcopy(self.encoder_optimizer.state_dict())}
+        return {"agent": self.agent.state_dict(), "encoder": module_state(self.encoder),
+                "target_encoder": module_state(self.target_encoder),
+                "encoder_optimizer": optimizer_state(self.encoder_optimizer)}
+
+    def load_state_dict(self, sd: dict) -> None:
+        self.agent.load_state_dict(sd["agent"])
+        self.encoder.load_state_dict(sd["encoder"])
+        self.target_encoder.load_state_dict(sd["target_encoder"])
+        load_optimizer_state(self.encoder_optimizer, sd["encoder_optimizer"])
 
     @classmethod
     def from_state_dict(cls, sd: dict) -> "PixelQCFQL":
-        from baselines.qcfql import QCFQLAgent
+        from baselines.qcfql import _config_from
 
-        agent = QCFQLAgent.from_state_dict(sd["agent"])
-        out = cls(agent.config, seed=agent.seed)
-        out.agent = agent
-        for name in ("encoder", "target_encoder", "encoder_optimizer"):
-            getattr(out, name).load_state_dict(sd[name])
+        out = cls(_config_from(sd["agent"]["config"]), seed=sd["agent"]["seed"])
+        out.load_state_dict(sd)
+        return out
+
+    def policy_state_dict(self) -> dict:
+        return {"agent": self.agent.policy_state_dict(), "encoder": module_state(self.encoder)}
+
+    @classmethod
+    def from_policy_state_dict(cls, sd: dict) -> "PixelQCFQL":
+        from baselines.qcfql import QCFQLAgent, _config_from
+
+        out = cls(_config_from(sd["agent"]["config"]), seed=sd["agent"]["seed"])
+        out.agent = QCFQLAgent.from_policy_state_dict(sd["agent"])
+        out.encoder.load_state_dict(sd["encoder"])
         return out
