@@ -36,6 +36,7 @@ from window_bench.harness.evaluation import atomic_write
 STATE_FORMAT = "window-bench/state"
 STATE_VERSION = 1
 MANIFEST = "manifest.json"
+STATE = "state.safetensors"
 MANIFEST_FORMAT = "window-bench/run"
 LOCK = ".lock"
 UNLISTED = ("tb", LOCK, MANIFEST)      # top-level names the manifest does not cover
@@ -325,6 +326,8 @@ class RunDir:
     def _check_identity(self, resume: bool) -> None:
         saved = self.manifest["run"]
         desc = ", ".join(f"{k} {saved.get(k)}" for k in ("method", "env_id", "profile", "seed"))
+        if not resume and saved == self.identity and STATE not in self.manifest["files"]:
+            return   # this run, stopped before its first state (e.g. in demo collection)
         if not resume:
             raise RunFileError(f"--out {self.path}: already holds a run ({desc}); pass --resume "
                                f"to continue it or choose another --out")
