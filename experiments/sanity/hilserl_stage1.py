@@ -2,8 +2,8 @@
 commanded releases vs grip breaks, and action statistics against the demonstrations.
 
 Stage I is the harness's (``window_bench.harness.run``): the same demonstrations (operator
-``average``, seeds ``1_000_000 + seed``), the same normaliser and agent construction
-(``make_agent`` with the profile's sizes and ``--agent-config`` overrides), batches of
+``average``, seeds ``1_000_000 + seed``), the same normaliser (``obs_normalizer``) and agent
+(``HILSERLConfig`` with the profile's sizes and ``--agent-config`` overrides), batches of
 ``profile.batch_size`` from D_demo only, ``critic_actor_ratio`` critic steps per update
 call. Only ``--steps`` (gradient steps, default the profile's) can be shortened.
 
@@ -26,12 +26,12 @@ import torch
 from tqdm import tqdm
 
 import window_bench  # noqa: F401  (registers the envs)
+from baselines.hilserl import HILSERLAgent, HILSERLConfig
 from window_bench.data.replay import ChunkReplay
 from window_bench.envs.env import VACUUM_THRESHOLD
 from window_bench.harness.evaluation import atomic_write_text, provenance
-from window_bench.harness.methods import get_method, get_profile
-from window_bench.harness.run import (EVAL_SEED0, agent_from_state, make_agent, obs_normalizer,
-                                      parse_overrides, summarize_eval)
+from window_bench.harness.methods import get_profile
+from window_bench.harness.run import EVAL_SEED0, obs_normalizer, parse_overrides, summarize_eval
 from window_bench.installer.demos import collect_demos, load_demos
 
 
@@ -46,8 +46,10 @@ def demos_for(env_id: str, n: int, root: Path, seed: int):
 
 def stage1(env_id, profile, seed, steps, overrides, demos):
     obs = np.concatenate([ep.observations for ep in demos])
-    agent = make_agent(get_method("hil-serl"), profile, obs.shape[1], seed,
-                       *obs_normalizer(obs), overrides=overrides)
+    cfg = HILSERLConfig(**{"hidden": tuple(profile.hidden), "batch_size": profile.batch_size,
+                           **overrides})
+    mean, std = obs_normalizer(obs)
+    agent = HILSERLAgent(obs.shape[1], 7, cfg, seed=seed, obs_mean=mean, obs_std=std)
     demo_rb = ChunkReplay(sum(ep.T for ep in demos), 1, agent.config.gamma, seed=seed)
     for ep in demos:
         demo_rb.add_episode(ep)
@@ -138,7 +140,7 @@ def main(argv=None):
     pol_path = out / f"hilserl_stage1_{a.tag}.pt"
     overrides = parse_overrides(a.agent_config)
     if a.eval_only:
-        agent = agent_from_state("hilserl", torch.load(pol_path, weights_only=True))
+        agent = HILSERLAgent.from_state_dict(torch.load(pol_path, weights_only=True))
         last, cpu_s = {}, None
     else:
         agent, last, cpu_s = stage1(a.env, profile, a.seed, steps, overrides, demos)
