@@ -457,10 +457,14 @@ class ACTAgent(Agent):
     own_normalizer = True   # z-scores observations and actions with its own demo statistics
 
     @classmethod
+    def make_config(cls, h: int, profile, overrides: dict) -> ACTConfig:
+        return with_overrides(ACT_PROFILES[profile.name], overrides)
+
+    @classmethod
     def create(cls, spec: AgentSpec) -> "ACTAgent":
         """The profile's ACT sizes (:data:`ACT_PROFILES`), its normaliser fitted on the demos."""
         agent = cls(spec.obs_dim, spec.action_dim,
-                    with_overrides(ACT_PROFILES[spec.profile.name], spec.overrides), seed=spec.seed)
+                    cls.make_config(spec.h, spec.profile, spec.overrides), seed=spec.seed)
         agent.fit_normalizer(spec.demos)
         return agent
 

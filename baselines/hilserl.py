@@ -428,9 +428,13 @@ class HILSERLAgent(Agent):
 
     # ------------------------------------------------------------------ the harness's interface
     @classmethod
+    def make_config(cls, h: int, profile, overrides: dict) -> HILSERLConfig:
+        return with_overrides(HILSERLConfig(hidden=tuple(profile.hidden),
+                                            batch_size=profile.batch_size), overrides)
+
+    @classmethod
     def create(cls, spec: AgentSpec) -> "HILSERLAgent":
-        cfg = with_overrides(HILSERLConfig(hidden=tuple(spec.profile.hidden),
-                                           batch_size=spec.profile.batch_size), spec.overrides)
+        cfg = cls.make_config(spec.h, spec.profile, spec.overrides)
         return cls(spec.obs_dim, spec.action_dim, cfg, seed=spec.seed, obs_mean=spec.obs_mean,
                    obs_std=spec.obs_std)
 

@@ -412,9 +412,13 @@ class QCFQLAgent(Agent):
 
     # ------------------------------------------------------------------ the harness's interface
     @classmethod
+    def make_config(cls, h: int, profile, overrides: dict) -> QCFQLConfig:
+        return with_overrides(QCFQLConfig(h=h, hidden=tuple(profile.hidden),
+                                          batch_size=profile.batch_size), overrides)
+
+    @classmethod
     def create(cls, spec: AgentSpec) -> "QCFQLAgent":
-        cfg = with_overrides(QCFQLConfig(h=spec.h, hidden=tuple(spec.profile.hidden),
-                                         batch_size=spec.profile.batch_size), spec.overrides)
+        cfg = cls.make_config(spec.h, spec.profile, spec.overrides)
         return cls(spec.obs_dim, spec.action_dim, cfg, seed=spec.seed, obs_mean=spec.obs_mean,
                    obs_std=spec.obs_std)
 

@@ -69,6 +69,15 @@ class Agent(ABC):
 
     # ------------------------------------------------------------------ building
     @classmethod
+    def make_config(cls, h: int, profile, overrides: dict):
+        """The agent's config for a run, ``--agent-config`` overrides applied and validated
+        (``ValueError`` naming the field, the value and the allowed range), or None for an
+        agent without one. The harness calls it before any demo is collected, so that a bad
+        value stops a run before it starts; :meth:`create` builds from it."""
+        no_overrides(cls.__name__, overrides)
+        return None
+
+    @classmethod
     @abstractmethod
     def create(cls, spec: AgentSpec) -> "Agent":
         """A fresh agent for a run (weights seeded by ``spec.seed``)."""

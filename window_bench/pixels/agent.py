@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from window_bench.harness.agent import (Agent, AgentSpec, load_optimizer_state, module_state,
-                                        optimizer_state, with_overrides)
+                                        optimizer_state)
 from window_bench.pixels.encoder import OBS_DIM, PROPRIO_DIM, PixelObsEncoder
 
 
@@ -41,16 +41,19 @@ class PixelQCFQL(Agent):
         self.encoder_optimizer = torch.optim.Adam(self.encoder.parameters(), lr=config.lr)
 
     @classmethod
+    def make_config(cls, h: int, profile, overrides: dict):
+        from baselines.qcfql import QCFQLAgent
+
+        return QCFQLAgent.make_config(h, profile, overrides)
+
+    @classmethod
     def create(cls, spec: AgentSpec) -> "PixelQCFQL":
         """From the harness's spec: ``obs_mean``/``obs_std`` are the demo statistics of the
         whole pixel observation; only their proprioception part is used."""
-        from baselines.qcfql import QCFQLConfig
-
         if spec.obs_dim != OBS_DIM:
             raise ValueError(f"PixelQCFQL: obs_dim = {spec.obs_dim}, the pixel observation "
                              f"has {OBS_DIM} values (PixelFeatures)")
-        cfg = with_overrides(QCFQLConfig(h=spec.h, hidden=tuple(spec.profile.hidden),
-                                         batch_size=spec.profile.batch_size), spec.overrides)
+        cfg = cls.make_config(spec.h, spec.profile, spec.overrides)
         stats = [None if a is None else np.asarray(a)[-PROPRIO_DIM:]
                  for a in (spec.obs_mean, spec.obs_std)]
         return cls(cfg, spec.seed, *stats)
