@@ -67,3 +67,80 @@ def test_copy_before_reset_and_of_pixel_env():
     assert _same(o1, o2) and o1["wrist_rgb"].shape == (32, 32, 3)
     env.close()
     twin.close()
+
+
+def test_info_codes_match_the_labels():
+    from window_bench.envs.env import SUCTION_LOSS_NAMES
+    from window_bench.envs.task import FAILURE_MODE_NAMES, STAGES
+
+    env = gym.make("WindowInstall-B-v0")
+    _, info = env.reset(seed=0)
+    assert (info["failure_code"], info["stage"], info["suction_loss_code"]) == (0, 0, 0)
+    seen = set()
+    for _ in range(20):   # vacuum never commanded: never_acquired
+        _, _, _, _, info = env.step(np.zeros(7))
+        assert FAILURE_MODE_NAMES[info["failure_code"]] == info["failure_mode"]
+        assert SUCTION_LOSS_NAMES[info["suction_loss_code"]] == info["suction_loss"]
+        seen.add(info["failure_mode"])
+    assert seen == {"never_acquired"} and STAGES[info["stage"]] == "none"
+    # The scripted installer reaches every stage; the codes follow.
+    obs, info = env.reset(seed=1)
+    ctrl = ScriptedInstaller(env)
+    ctrl.reset(seed=1)
+    stages = [info["stage"]]
+    done = False
+    while not done:
+        obs, _, term, trunc, info = env.step(ctrl.act(obs))
+        stages.append(info["stage"])
+        done = term or trunc
+    assert stages == sorted(stages) and set(stages) == {0, 1, 2, 3} and info["failure_code"] == 0
+    env.close()
+
+
+def test_info_strings_false_gives_numbers_only():
+    env = gym.make("WindowInstall-A-v0", info_strings=False)
+    _, info = env.reset(seed=0)
+    infos = [info] + [env.step(env.action_space.sample())[4] for _ in range(3)]
+    for i in infos:
+        assert "failure_mode" not in i and "suction_loss" not in i
+        assert all(isinstance(v, (bool, int, float)) for k, v in i.items() if k != "randomization")
+    with pytest.raises(ValueError, match="info_strings='no'"):
+        gym.make("WindowInstall-A-v0", info_strings="no")
+    env.close()
+
+
+def test_torchrl_batched_gymenv_and_collector():
+    """TorchRL's batched GymEnv records every info key; with info_strings=False they are all
+    numbers, so it builds, rolls out and feeds a collector with success and failure codes."""
+    torch = pytest.importorskip("torch")
+    from torchrl.collectors import Collector
+    from torchrl.envs import GymEnv
+
+    torch.set_num_threads(1)
+    env = GymEnv("window_bench:WindowInstall-B-v0", num_envs=2, info_strings=False)
+    assert tuple(env.batch_size) == (2,)
+    collector = Collector(env, policy=None, frames_per_batch=8, total_frames=16)
+    batches = list(collector)
+    collector.shutdown()
+    assert len(batches) == 2
+    for b in batches:
+        assert b.batch_size == (2, 4)
+        assert b["next", "is_success"].dtype == torch.bool
+        # Random actions in B: the vacuum engages only by chance, far from the panel.
+        assert set(b["next", "failure_code"].unique().tolist()) <= {1}
+    env.close()
+
+
+def test_torchrl_single_env_info_reader():
+    torch = pytest.importorskip("torch")
+    from torchrl.envs import GymEnv
+
+    from window_bench.envs.interop import INFO_CODES, torchrl_info_reader
+
+    torch.set_num_threads(1)
+    env = GymEnv("window_bench:WindowInstall-A-v0")
+    env.set_info_dict_reader(torchrl_info_reader())
+    td = env.rollout(3)
+    assert set(INFO_CODES) <= set(td["next"].keys())
+    assert td["next", "stage"].tolist() == [1, 1, 1]   # A starts with the panel held
+    env.close()

@@ -15,7 +15,7 @@ from gymnasium import spaces
 
 from window_bench.envs import scene as S
 from window_bench.envs.controller import OSC, OSCGains, solve_ik
-from window_bench.envs.task import StageTracker, acceptance
+from window_bench.envs.task import FAILURE_CODES, StageTracker, acceptance
 
 POS_SCALE = 0.025         # m per unit action (Appendix)
 ROT_SCALE = 0.0873        # rad per unit action (5 deg)
@@ -51,6 +51,9 @@ B_Y_RANGE = (-0.3, 0.3)
 B_YAW_RANGE = np.deg2rad(15.0)
 
 OBS_MODES = ("state", "pixels", "flat")
+# ``info["suction_loss_code"]``: index of ``info["suction_loss"]`` here.
+SUCTION_LOSS_NAMES = ("", "commanded", "grip_break")
+SUCTION_LOSS_CODES = {name: code for code, name in enumerate(SUCTION_LOSS_NAMES)}
 STATE_KEYS = ("robot0_joint_pos", "robot0_joint_vel", "robot0_eef_pos", "robot0_eef_quat",
               "robot0_vacuum", "robot0_proprio", "window_pos_rel", "window_rot_rel",
               "contact_proxy")
@@ -119,6 +122,14 @@ class WindowInstallEnv(gym.Env):
     ``unstable_seating``, a released one ``suction_lost``. This mode exists for
     ``window_bench.envs.wrappers.NoisyAcceptance``, which decides reward and termination from a
     noisy acceptance sensor; it sets the attribute ``terminate_on_acceptance`` itself.
+
+    **Info for batched consumers.** Every info value is a number or a bool except the two
+    labels ``failure_mode`` and ``suction_loss`` (strings, for people) and ``randomization``
+    (a dict, at reset only). Their codes stand beside them: ``failure_code``
+    (``task.FAILURE_MODE_NAMES[code]``, 0 = none), ``suction_loss_code``
+    (``SUCTION_LOSS_NAMES[code]``), and ``stage``, the furthest stage event reached
+    (``task.STAGES``). ``info_strings=False`` leaves the two strings out, so that code which
+    stacks every info key (TorchRL's batched ``GymEnv``) gets numbers only.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -128,7 +139,7 @@ class WindowInstallEnv(gym.Env):
                  panel_mass: float | None = None, obs_mode: str = "state",
                  render_mode: str | None = None, image_size: int = 128,
                  max_episode_steps: int = MAX_EPISODE_STEPS,
-                 terminate_on_acceptance: bool = True):
+                 terminate_on_acceptance: bool = True, info_strings: bool = True):
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode={obs_mode!r}; allowed: {OBS_MODES}")
         if render_mode not in (None, "rgb_array"):
@@ -140,6 +151,9 @@ class WindowInstallEnv(gym.Env):
         if not isinstance(terminate_on_acceptance, (bool, np.bool_)):
             raise ValueError(f"terminate_on_acceptance={terminate_on_acceptance!r}; allowed: True, False")
         self.terminate_on_acceptance = bool(terminate_on_acceptance)
+        if not isinstance(info_strings, (bool, np.bool_)):
+            raise ValueError(f"info_strings={info_strings!r}; allowed: True, False")
+        self.info_strings = bool(info_strings)
         self.cfg = S.SceneConfig(experiment=experiment, panel_width=panel_width,
                                  panel_height=panel_height, clearance=clearance,
                                  panel_mass=panel_mass)
@@ -283,6 +297,8 @@ class WindowInstallEnv(gym.Env):
         self.osc.weld_force_mean[:] = 0
         obs = self._observation()
         info = {"randomization": dict(self._randomization), **self._info()}
+        if not self.info_strings:
+            del info["failure_mode"], info["suction_loss"]
         return obs, info
 
     def _set_panel_pose(self, center, mat) -> None:
@@ -425,6 +441,7 @@ class WindowInstallEnv(gym.Env):
         # Why suction was lost on this step: the vacuum commanded off, or the grip broke at
         # the holding limit (pull-off force, shear or peel moment).
         info["suction_loss"] = "grip_break" if suction_failed else "commanded" if released else ""
+        info["suction_loss_code"] = SUCTION_LOSS_CODES[info["suction_loss"]]
         # The label this episode gets if it ends now: valid on whichever step a wrapper
         # (e.g. gym.make(..., max_episode_steps=N)) or the env's own horizon ends it.
         if self.terminate_on_acceptance or accepted:
@@ -434,8 +451,11 @@ class WindowInstallEnv(gym.Env):
             # acceptance had never been reached.
             unseated = dataclasses.replace(self._stages, seated=False)
             info["failure_mode"] = unseated.failure_mode(self._sim_unstable) or ""
+        info["failure_code"] = FAILURE_CODES[info["failure_mode"]]
         info["accepted"] = bool(accepted)
         info["is_success"] = bool(accepted)
+        if not self.info_strings:
+            del info["failure_mode"], info["suction_loss"]
         if terminated or truncated:
             self._needs_reset = True
         return self._observation(), reward, terminated, truncated, info
@@ -492,6 +512,11 @@ class WindowInstallEnv(gym.Env):
             "failure_mode": "",
             "accepted": False,
             "is_success": False,
+            # Numbers for the two labels above and the stage events, for consumers that stack
+            # info across envs (vector envs, TensorDicts); see the class docstring.
+            "stage": st.stage,
+            "suction_loss_code": 0,
+            "failure_code": 0,
         }
 
     def _observation(self):

@@ -48,6 +48,13 @@ STALL_RATIO = 0.3           # realized / commanded translation below this = stal
 
 FAILURE_MODES = ("never_acquired", "suction_lost", "approach_failed", "entry_wedging",
                  "mid_depth_jamming", "unstable_seating", "timeout", "sim_unstable")
+# Integer codes for batched consumers (vector envs, TensorDicts): ``info["failure_code"]`` is
+# ``FAILURE_CODES[info["failure_mode"]]``, 0 for no failure; ``FAILURE_MODE_NAMES[code]``
+# maps back.
+FAILURE_MODE_NAMES = ("", *FAILURE_MODES)
+FAILURE_CODES = {name: code for code, name in enumerate(FAILURE_MODE_NAMES)}
+# ``info["stage"]``: the furthest stage event reached this episode, as an index here.
+STAGES = ("none", "suction_acquired", "insertion_entered", "seated")
 
 
 @dataclass(frozen=True)
@@ -103,6 +110,11 @@ class StageTracker:
         self.seated |= accepted
         if suction_failed and buck_contact and self.insertion_entered:
             self.bind_loss_depth = depth
+
+    @property
+    def stage(self) -> int:
+        """Index in ``STAGES`` of the furthest stage event reached."""
+        return 3 if self.seated else 2 if self.insertion_entered else int(self.suction_acquired)
 
     def failure_mode(self, sim_unstable: bool = False) -> str | None:
         if self.seated:
