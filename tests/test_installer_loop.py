@@ -288,22 +288,37 @@ def test_humanlike_demonstrator_is_seeded_and_not_the_script(env):
     assert still.any() and np.all(a1[still, 6] == a1[np.flatnonzero(still) - 1, 6])
 
 
-def test_collect_demos_keeps_successes_and_resumes(tmp_path):
+def test_collect_demos_keeps_successes_and_resumes(tmp_path, monkeypatch):
+    import window_bench.installer.demos as demos
+
+    # A collection killed after its episodes, before the dataset is written.
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(demos, "save_episodes", killed)
+    with pytest.raises(KeyboardInterrupt):
+        collect_demos("WindowInstall-A-v0", 2, tmp_path, operator="expert", seed=0,
+                      progress=False)
+    partial = sorted((tmp_path / ".partial").rglob("*.npz"))
+    assert len(partial) >= 2
+    mtimes = [p.stat().st_mtime_ns for p in partial]
+    monkeypatch.undo()
+    # Resume: the per-episode checkpoints are reused (not rewritten), then removed.
+    reads, load = [], demos._load_partial
+    monkeypatch.setattr(demos, "_load_partial",
+                        lambda path, *a: reads.append(path.stat().st_mtime_ns) or load(path, *a))
     s = collect_demos("WindowInstall-A-v0", 2, tmp_path, operator="expert", seed=0,
                       progress=False)
+    assert reads == mtimes and s["attempts"] == len(partial)
+    assert not (tmp_path / ".partial").exists()
     assert s["kept"] == 2 and s["attempts"] >= 2
     eps = load_episodes(demo_dataset_id("WindowInstall-A-v0", "expert"), data_path=tmp_path)
     assert len(eps) == 2
     for ep in eps:
         assert ep.terminated[-1] and set(ep.provenance.tolist()) == {"demo"}
         assert ep.operator == "expert" and ep.randomization and ep.stage_flags[-1].all()
-    # Resume: the per-episode checkpoints are reused, and the dataset comes out the same.
-    partial = sorted((tmp_path / ".partial").rglob("*.npz"))
-    assert len(partial) == s["attempts"]
-    mtimes = [p.stat().st_mtime_ns for p in partial]
+    # Collected again from scratch: the same dataset (seeded).
     s2 = collect_demos("WindowInstall-A-v0", 2, tmp_path, operator="expert", seed=0,
                        progress=False)
-    assert [p.stat().st_mtime_ns for p in partial] == mtimes
     assert s2["episodes"] == s["episodes"]
     eps2 = load_episodes(demo_dataset_id("WindowInstall-A-v0", "expert"), data_path=tmp_path)
     for a, b in zip(eps, eps2):

@@ -21,7 +21,14 @@ Layout of one episode in the Minari dataset (``T`` steps):
   ``options/randomization`` (a JSON string of the Table 9 draws).
 
 Dataset metadata (``metadata.json``) carries ``schema_version`` (:data:`SCHEMA_VERSION`),
-``window_bench_env_id``, ``obs_dim`` and every key of the caller's ``metadata``.
+``window_bench_env_id``, ``obs_dim``, ``window_bench_git_commit`` and every key of the
+caller's ``metadata``. For a registered env id Minari's ``env_spec`` is that id's spec with
+the constructor arguments the episodes were logged with (``obs_mode="flat"`` unless told
+otherwise), so ``minari.load_dataset(id).recover_environment()`` builds an env whose
+spaces are the dataset's, and ``requirements`` names this window-bench version. Author and
+e-mail default to the git identity of the checkout (``git config user.name`` /
+``user.email``), the code permalink to ``<origin URL>/tree/<commit>``; what git does not
+know is left empty rather than invented.
 
 Writes are atomic: the dataset is built under a temporary dataset id in the same datasets
 directory and then renamed into place with ``os.replace``.
@@ -55,7 +62,48 @@ _RESERVED_KEYS = frozenset({
     "author", "author_email", "algorithm_name", "code_permalink", "description",
     "requirements", "dataset_size", "combined_datasets", "ref_min_score", "ref_max_score",
     "num_episodes_average_score", "schema_version", "window_bench_env_id", "obs_dim",
+    "window_bench_git_commit",
 })
+
+
+def _git(*args: str) -> str | None:
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", *args], capture_output=True, text=True, timeout=5,
+                             cwd=Path(__file__).resolve().parent)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None if out.returncode == 0 else None
+
+
+def _permalink(commit: str) -> str | None:
+    """``<origin>/tree/<commit>`` for a clean, pushed-style checkout; None without a remote
+    or for uncommitted code (no link can point at it)."""
+    url = _git("remote", "get-url", "origin")
+    if not url or commit.endswith("-dirty") or commit == "unknown":
+        return None
+    if url.startswith("git@"):   # git@host:owner/repo.git -> https://host/owner/repo
+        url = "https://" + url[4:].replace(":", "/", 1)
+    return f"{url.removesuffix('.git')}/tree/{commit}"
+
+
+def _env_for(env_id: str, env_kwargs: dict, obs_dim: int):
+    """The registered env the episodes were logged in, made with ``env_kwargs``; None for
+    an id that is not registered. Its observation space must be the dataset's."""
+    import gymnasium as gym
+
+    try:
+        gym.spec(env_id)
+    except gym.error.Error:
+        return None
+    env = gym.make(env_id, **env_kwargs)
+    shape = getattr(env.observation_space, "shape", None)
+    if shape != (obs_dim,):
+        env.close()
+        raise ValueError(f"env {env_id!r} with {env_kwargs} observes {env.observation_space}, "
+                         f"the episodes have obs_dim {obs_dim}")
+    return env
 
 
 @contextlib.contextmanager
@@ -144,8 +192,13 @@ def _to_buffer(ep: EpisodeLog):
 
 def save_episodes(episodes: list[EpisodeLog], dataset_id: str, *, env_id: str, obs_dim: int,
                   data_path: str | os.PathLike | None = None, metadata: dict | None = None,
-                  overwrite: bool = False) -> Path:
+                  overwrite: bool = False, env_kwargs: dict | None = None,
+                  author: str | None = None, author_email: str | None = None) -> Path:
     """Write ``episodes`` as the Minari dataset ``dataset_id``; return its directory.
+
+    ``env_kwargs`` (default ``{"obs_mode": "flat"}``, what :class:`Rollout` logs) are the
+    constructor arguments recorded in the env spec; ``author`` / ``author_email`` default
+    to the checkout's git identity.
 
     ``dataset_id`` follows Minari's syntax ``(namespace/)name-vN``. ``data_path`` is the
     datasets root (default: ``$MINARI_DATASETS_PATH`` or ``~/.minari/datasets``). Every
@@ -174,6 +227,11 @@ def save_episodes(episodes: list[EpisodeLog], dataset_id: str, *, env_id: str, o
     except (TypeError, ValueError) as e:
         raise ValueError(f"metadata is not JSON-serialisable: {e}") from None
 
+    from window_bench import __version__
+    from window_bench.harness.evaluation import git_commit
+
+    env_kwargs = {"obs_mode": "flat"} if env_kwargs is None else dict(env_kwargs)
+    commit = git_commit()
     with _datasets_root(data_path):
         from minari.storage.datasets_root_dir import get_dataset_path
 
@@ -185,19 +243,22 @@ def save_episodes(episodes: list[EpisodeLog], dataset_id: str, *, env_id: str, o
         tmp_id = f"{_TMP_PREFIX}{uuid.uuid4().hex}-v0"
         tmp_dir = Path(get_dataset_path(tmp_id))
         obs_space, act_space = _spaces(obs_dim)
+        env = _env_for(env_id, env_kwargs, obs_dim)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # Minari nags about unset optional fields
                 minari.create_dataset_from_buffers(
                     dataset_id=tmp_id,
                     buffer=[_to_buffer(ep) for ep in episodes],
+                    env=env,
                     observation_space=obs_space,
                     action_space=act_space,
                     algorithm_name="window-bench step log",
-                    author="window-bench",
-                    author_email="window-bench",
-                    code_permalink="window-bench",
-                    description=f"window-bench step logs of {env_id}",
+                    author=author or _git("config", "user.name"),
+                    author_email=author_email or _git("config", "user.email"),
+                    code_permalink=_permalink(commit),
+                    description=f"window-bench step logs of {env_id} ({env_kwargs})",
+                    requirements=[f"window-bench=={__version__}"],
                     data_format="hdf5",
                 )
             # The final id is written by hand: Minari refuses to update `dataset_id`.
@@ -205,7 +266,8 @@ def save_episodes(episodes: list[EpisodeLog], dataset_id: str, *, env_id: str, o
             meta = json.loads(meta_file.read_text())
             meta.update(metadata)
             meta.update({"dataset_id": dataset_id, "schema_version": SCHEMA_VERSION,
-                         "window_bench_env_id": str(env_id), "obs_dim": obs_dim})
+                         "window_bench_env_id": str(env_id), "obs_dim": obs_dim,
+                         "window_bench_git_commit": commit})
             meta_file.write_text(json.dumps(meta))
 
             # Namespaced ids need their namespace directory (and Minari's namespace file).
@@ -229,6 +291,8 @@ def save_episodes(episodes: list[EpisodeLog], dataset_id: str, *, env_id: str, o
             else:
                 os.replace(tmp_dir, final_dir)
         finally:
+            if env is not None:
+                env.close()
             if tmp_dir.exists():
                 shutil.rmtree(tmp_dir, ignore_errors=True)
     return final_dir

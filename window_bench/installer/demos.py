@@ -6,7 +6,7 @@ operator profile) through the same 7-D action interface and the same :class:`Rol
 as every policy, keeps the successful episodes (the paper's D_demo is 50 successful
 teleoperated trajectories) and writes them as a Minari dataset. Finished episodes are
 checkpointed one file each under ``<out>/.partial``, so a killed collection resumes where it
-stopped and gives the same dataset.
+stopped and gives the same dataset; a collection that finishes removes its checkpoints.
 
 :func:`measure_supervision` lets an operator profile supervise a reference controller
 (random actions, the straight push) and counts takeovers and installer minutes.
@@ -14,8 +14,10 @@ stopped and gives the same dataset.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import time
 from collections import Counter
 from pathlib import Path
@@ -158,6 +160,10 @@ def collect_demos(env_id: str, n: int, out: str | os.PathLike, *, operator: str 
                   data_path=out, metadata={"operator": profile.name, "seed": seed,
                                            "attempts": i}, overwrite=True)
     atomic_write_text(out / f"{dataset_id.replace('/', '__')}.json", json.dumps(summary, indent=1))
+    # The dataset and its summary are in place: the resume checkpoints have done their job.
+    shutil.rmtree(partial)
+    with contextlib.suppress(OSError):   # other collections may still be resuming there
+        partial.parent.rmdir()
     return summary
 
 
