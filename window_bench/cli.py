@@ -327,7 +327,8 @@ def cmd_sweep(args) -> int:
 
     try:
         sweep = Sweep(load_grid(args.grid), args.out, workers=args.workers,
-                      address=args.address, progress=not args.no_progress)
+                      address=args.address, progress=not args.no_progress,
+                      stage1_cache=not args.no_stage1_cache)
     except GridError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -446,6 +447,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="join an existing Ray cluster (e.g. 127.0.0.1:6379 after "
                          "`ray start --head`); default: start one on this machine")
     sw.add_argument("--no-progress", action="store_true", help="one line per finished cell only")
+    sw.add_argument("--no-stage1-cache", action="store_true",
+                    help="every cell computes its own Stage I (to measure what the cache saves)")
     sw.set_defaults(func=cmd_sweep)
     tb = sub.add_parser("tables", help="regenerate the paper's Tables 2-7 and Figs. 10/11 "
                                        "from raw run files")

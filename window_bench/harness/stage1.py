@@ -13,9 +13,11 @@ cells load it. What Stage I produces is fully determined by
   version,
 
 and the cache key is the sha256 of exactly that (:func:`stage1_key`). An entry holds the
-pretrained agent, the demo buffer's sampler state, torch's global RNG state and the Stage I
-counters, in the code-free state format of :mod:`window_bench.harness.files` (loading it can
-run no code), written atomically; ``<key>.json`` beside it records what the key hashes and how
+pretrained agent, the demo buffer's sampler state, torch's global RNG state, the Stage I
+counters and, once the first run has measured it, checkpoint 0's evaluation rows (they depend
+only on the pretrained policy, the env, the seeds and the episode cap, which the entry
+records and a run checks before reusing them), in the code-free state format of
+:mod:`window_bench.harness.files` (loading it can run no code), written atomically; ``<key>.json`` beside it records what the key hashes and how
 long Stage I took. Two runs that need the same missing entry take an ``fcntl`` lock on
 ``<key>.lock``: the first computes, the second waits and then loads.
 """
@@ -102,11 +104,14 @@ class Stage1Cache:
             return None
         return load_state(self.path(key), KIND)
 
-    def store(self, key: str, tree: dict, material: dict, wall_clock_s: float) -> None:
+    def store(self, key: str, tree: dict, material: dict | None, wall_clock_s: float) -> None:
+        """Write (or rewrite, e.g. adding checkpoint 0's evaluation rows) an entry;
+        ``material`` (what the key hashes) goes into ``<key>.json`` the first time."""
         from window_bench.harness.files import dump_state
 
         meta = {"key": key, "stage1_wall_clock_s": round(float(wall_clock_s), 2)}
         data = dump_state(tree, KIND, meta)
         atomic_write(self.path(key), lambda f: f.write(data))
-        atomic_write_text(self.root / f"{key}.json",
-                          json.dumps({**meta, "material": material}, indent=1, sort_keys=True))
+        if material is not None:
+            atomic_write_text(self.root / f"{key}.json",
+                              json.dumps({**meta, "material": material}, indent=1, sort_keys=True))

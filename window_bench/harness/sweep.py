@@ -281,7 +281,8 @@ def demos_dir(cell: Cell, grid: Grid, out: Path) -> Path:
     return out / "demos" / f"{cell.env_id}-{grid.operator}-n{n}-s{cell.seed}"
 
 
-def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool) -> list[str]:
+def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool,
+                 stage1_cache: bool = True) -> list[str]:
     bench = [sys.executable, "-m", "window_bench.cli"]
     if cell.on is not None:
         return bench + ["eval", str(final_policy(cell.train_cell.path(out))), "--env", cell.on,
@@ -291,8 +292,9 @@ def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool) -> list[str]:
                     "--profile", cell.profile, "--seed", str(cell.seed),
                     "--out", str(cell.path(out)), "--operator", grid.operator,
                     "--demos", str(demos_dir(cell, grid, out)),
-                    "--final-episodes", str(grid.M), "--final-seed-set", grid.seed_set,
-                    "--stage1-cache", str(out / "stage1_cache")]
+                    "--final-episodes", str(grid.M), "--final-seed-set", grid.seed_set]
+    if stage1_cache:
+        argv += ["--stage1-cache", str(out / "stage1_cache")]
     if cell.h is not None:
         argv += ["--h", str(cell.h)]
     if cell.agent_config:
@@ -371,8 +373,9 @@ class Sweep:
     """Runs a grid's cells on Ray (see the module docstring)."""
 
     def __init__(self, grid: Grid, out: str | os.PathLike, workers: int | None = None,
-                 address: str | None = None, progress: bool = True):
+                 address: str | None = None, progress: bool = True, stage1_cache: bool = True):
         self.grid, self.out = grid, Path(out)
+        self.stage1_cache = stage1_cache
         self.address = address
         self.workers = workers
         self.progress = progress
@@ -426,7 +429,7 @@ class Sweep:
                         break
                     for c in ready:
                         resume = cell_status(c, g, out) == "partial"
-                        argv = cell_command(c, g, out, resume)
+                        argv = cell_command(c, g, out, resume, self.stage1_cache)
                         log = str((c.path(out) if c.on is None else c.path(out).parent)
                                   / ("sweep.log" if c.on is None else f"{c.on}.log"))
                         demos = None if c.on is not None else demos_command(c, g, out)
@@ -446,6 +449,7 @@ class Sweep:
                         results[c] = r
                         self._record(c, r)
                         view.finished(c, r)
+                    view.update(running=len(running))
         except KeyboardInterrupt:
             interrupted = True
             for ref in running:
@@ -464,7 +468,8 @@ class Sweep:
         def computing(c: Cell) -> bool:
             return bool(c.stage1_group) and not (c.path(self.out) / "stage1.json").exists()
 
-        busy = {c.stage1_group for c, _, _ in running.values() if computing(c)}
+        busy = {c.stage1_group for c, _, _ in running.values() if computing(c)
+                and self.stage1_cache}
         picked = []
         for c in list(todo):
             if len(picked) >= self.slots - len(running):
@@ -479,7 +484,7 @@ class Sweep:
                 continue
             if c.stage1_group in busy:
                 continue
-            if computing(c):
+            if computing(c) and self.stage1_cache:
                 busy.add(c.stage1_group)
             picked.append(c)
         return picked
@@ -492,6 +497,7 @@ class Sweep:
     def _summary(self, results: dict, wall: float, interrupted: bool) -> dict:
         return {"grid": self.grid.name, "grid_file": str(self.grid.path),
                 "out": str(self.out), "workers": self.slots, "address": self.address,
+                "stage1_cache": self.stage1_cache,
                 "wall_clock_s": round(wall, 1), "interrupted": interrupted,
                 "cells": {c.name: results.get(c, {"status": cell_status(c, self.grid, self.out)})
                           for c in self.grid.cells}}
