@@ -196,14 +196,15 @@ def test_harness_evaluates_act_with_a_query_every_step(monkeypatch):
     from window_bench.harness.methods import get_method, get_profile
     from window_bench.harness.run import AgentPolicy, _eval_worker, make_agent
 
-    agent = make_agent(get_method("act"), get_profile("smoke"), OBS_DIM, seed=0)
-    agent.fit_normalizer([synthetic_episode(23, 0)])
+    agent = make_agent(get_method("act"), get_profile("smoke"), [synthetic_episode(23, 0)],
+                       seed=0)
     assert agent.h == 1 and AgentPolicy(agent, deterministic=True).h == 1
     calls = []
     real = ACTAgent.predict_chunk
     monkeypatch.setattr(ACTAgent, "predict_chunk",
                         lambda self, obs: calls.append(1) or real(self, obs))
-    rows = _eval_worker(("act", agent.state_dict(), "WindowInstall-A-v0", [100_000], 12))
+    rows = _eval_worker((ACTAgent, agent.policy_state_dict(), "WindowInstall-A-v0",
+                         [100_000], 12))
     assert len(rows) == 1 and not rows[0]["success"]
     assert len(calls) == 12        # one query per step of the 12-step episode
 

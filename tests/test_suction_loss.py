@@ -64,7 +64,7 @@ def test_evaluation_rows_record_commanded_releases():
         last = [m for m in agent.grasp_critic.modules() if isinstance(m, torch.nn.Linear)][-1]
         last.weight.zero_()
         last.bias.copy_(torch.tensor([1.0, 0.0]))     # argmax: release
-    rows = _eval_worker(("hilserl", agent.state_dict(), A, [100_000], 5))
+    rows = _eval_worker((HILSERLAgent, agent.policy_state_dict(), A, [100_000], 5))
     assert rows[0]["commanded_releases"] == 1 and rows[0]["grip_breaks"] == 0
     assert rows[0]["failure_mode"] == "suction_lost"
     assert summarize_eval(rows)["suction_lost_by"] == {"grip_break": 0, "commanded": 1}
