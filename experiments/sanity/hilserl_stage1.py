@@ -116,6 +116,23 @@ def action_stats(agent, demos, rollout_actions):
                               "n_steps": int(len(rollout_actions))}}
 
 
+def q_check(agent, demos, gamma: float = 0.99) -> dict:
+    """The critics' values on the demonstrations against what any return can be: the reward
+    is 1 on acceptance and 0 otherwise, so the demos' discounted return-to-go is <= 1."""
+    obs = torch.as_tensor(np.concatenate([ep.observations[:-1] for ep in demos]),
+                          dtype=torch.float32)
+    act = torch.as_tensor(np.concatenate([ep.actions for ep in demos]), dtype=torch.float32)
+    rtg = np.concatenate([gamma ** np.arange(ep.T)[::-1] * float(ep.terminated[-1])
+                          for ep in demos])
+    with torch.no_grad():
+        o = agent._normalize(obs)
+        q_demo = agent.critic(o, act[:, :agent.pose_dim]).mean(0)
+        q_pi = agent.critic(o, agent.actor.mode(o)).mean(0)
+    return {"demo_return_to_go_mean": float(rtg.mean()), "q_demo_action_mean": float(q_demo.mean()),
+            "q_policy_action_mean": float(q_pi.mean()),
+            "frac_q_policy_above_q_demo": float((q_pi > q_demo).float().mean())}
+
+
 def main(argv=None):
     torch.set_num_threads(1)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -159,7 +176,8 @@ def main(argv=None):
               "config": {k: (list(v) if isinstance(v, tuple) else v)
                          for k, v in agent.state_dict()["config"].items()},
               "last_update": last, "summary": summary,
-              "actions": action_stats(agent, demos, acts), "rows": rows,
+              "actions": action_stats(agent, demos, acts), "q_check": q_check(agent, demos),
+              "rows": rows,
               "provenance": provenance()}
     atomic_write_text(out / f"hilserl_stage1_{a.tag}.json", json.dumps(result, indent=1))
     print(json.dumps({"tag": a.tag, "summary": summary,
