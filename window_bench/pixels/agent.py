@@ -7,14 +7,14 @@ The paper's networks take ``concat(view embeddings, proprioception)`` (Appendix)
 
 Who trains the aggregation: the critic loss, as in HIL-SERL and DrQ; the actor and the flow
 teacher read the embedding with the gradient stopped, so the actor's Q-maximisation cannot
-reshape the representation. The TD target embeds ``s'`` with a Polyak copy of the encoder
-(rate ``tau``, like the target critic). The backbone is not part of the agent: its features
+reshape the representation. The TD target embeds ``s'`` with the current aggregation, the
+gradient stopped (as DrQ-v2 embeds its next observations; the target critic still
+stabilises the bootstrap), which lets one fold of the weights serve both. The backbone is not part of the agent: its features
 come cached in the batch, which is why an update costs about what a state-track update costs.
 """
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Mapping
 
 import numpy as np
@@ -36,7 +36,6 @@ class PixelQCFQL(Agent):
         config = QCFQLConfig() if config is None else config
         self.obs_dim = OBS_DIM
         self.encoder = PixelObsEncoder(seed, proprio_mean, proprio_std)
-        self.target_encoder = copy.deepcopy(self.encoder).requires_grad_(False)
         self.agent = QCFQLAgent(PixelObsEncoder.out_dim, 7, config, seed=seed)
         self.encoder_optimizer = torch.optim.Adam(self.encoder.parameters(), lr=config.lr)
 
@@ -86,9 +85,8 @@ class PixelQCFQL(Agent):
         """One gradient step (critic + encoder aggregation, teacher, student) and the Polyak
         steps; ``batch`` as for ``QCFQLAgent.update`` with ``obs``/``next_obs`` of OBS_DIM."""
         agent = self.agent
-        emb = self.encoder(torch.as_tensor(batch["obs"]))
-        with torch.no_grad():
-            next_emb = self.target_encoder(torch.as_tensor(batch["next_obs"]))
+        emb, next_emb = self.encoder.encode_pair(torch.as_tensor(batch["obs"]),
+                                                 torch.as_tensor(batch["next_obs"]))
         b = agent.prepare({**{k: batch[k] for k in batch.keys()},
                            "obs": emb, "next_obs": next_emb})
         critic_loss, q = agent.critic_loss(b)
@@ -102,9 +100,6 @@ class PixelQCFQL(Agent):
         agent.optimizer.step()
         self.encoder_optimizer.step()
         agent.polyak()
-        with torch.no_grad():
-            torch._foreach_lerp_(list(self.target_encoder.parameters()),
-                                 list(self.encoder.parameters()), agent.config.tau)
         agent.num_updates += 1
         return {"loss": loss.item(), "critic_loss": critic_loss.item(),
                 "flow_loss": flow_loss.item(), "actor_loss": actor["loss"].item(),
@@ -118,13 +113,11 @@ class PixelQCFQL(Agent):
     # ------------------------------------------------------------------ state (plain data)
     def state_dict(self) -> dict:
         return {"agent": self.agent.state_dict(), "encoder": module_state(self.encoder),
-                "target_encoder": module_state(self.target_encoder),
                 "encoder_optimizer": optimizer_state(self.encoder_optimizer)}
 
     def load_state_dict(self, sd: dict) -> None:
         self.agent.load_state_dict(sd["agent"])
         self.encoder.load_state_dict(sd["encoder"])
-        self.target_encoder.load_state_dict(sd["target_encoder"])
         load_optimizer_state(self.encoder_optimizer, sd["encoder_optimizer"])
 
     @classmethod
