@@ -333,3 +333,14 @@ def test_pixel_demos_replay_the_state_demos_exactly(backbone):
     with pytest.raises(ValueError, match="needs the frozen backbone"):
         make_track_env(ENV, "pixels")
     assert isinstance(make_track_env(ENV, "state").observation_space, gym.spaces.Box)
+
+
+def test_the_shipped_default_encoder_loads_with_its_record():
+    """The package's default backbone is a real weights file (not a pointer or a stub) with
+    its training command and held-out quality."""
+    assert W.DEFAULT_WEIGHTS.is_file() and W.DEFAULT_WEIGHTS.stat().st_size < 10_000_000
+    model, label = W.resolve_backbone(None)
+    assert label == f"default:{W.DEFAULT_WEIGHTS.name}" and not model.training
+    record = W.weights_record(W.DEFAULT_WEIGHTS)
+    assert record["command"].startswith("bench encoder train")
+    assert record["heldout_quality"]["panel position rel. seat (mm)"]["r2"] > 0.5
