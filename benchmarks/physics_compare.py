@@ -11,6 +11,12 @@ Usage::
     OMP_NUM_THREADS=1 MUJOCO_GL=egl python benchmarks/physics_compare.py \\
         --env WindowInstall-A-v0 --episodes 10 --jacobian auto --out /tmp/a.json
     python benchmarks/physics_compare.py --compare /tmp/a.json /tmp/b.json
+    python benchmarks/physics_compare.py --timing 20    # one line: ms per env step, us per mj_step
+
+``--timing N`` times N blocks of 50 env steps (the installer's first 50 steps of seed 0,
+replayed) and N blocks of 100 ``mj_step`` from the state after them, alternating, and
+prints the medians; run it alternately under two interpreters to compare builds on a
+shared machine.
 
 ``--jacobian`` overrides ``model.opt.jacobian`` after the env is built (``as-built`` keeps
 the scene's own setting). MuJoCo resolves ``auto`` to dense for up to 60 dofs; our scene
@@ -79,6 +85,32 @@ def run(env_id: str, controller: str, episodes: int, seed: int, jacobian: str) -
             "median_step_ms": float(np.median(ms)), "rows": rows, "provenance": provenance()}
 
 
+def timing(blocks: int) -> None:
+    env = gym.make("WindowInstall-A-v0")
+    u = env.unwrapped
+    ctrl = CONTROLLERS["installer"](env)
+    obs, _ = env.reset(seed=0)
+    ctrl.reset(seed=0)
+    actions = []
+    for _ in range(50):
+        actions.append(ctrl.act(obs))
+        obs, *_ = env.step(actions[-1])
+    m, d = u.model, mujoco.MjData(u.model)
+    env_ms, step_us = [], []
+    for _ in range(blocks):
+        env.reset(seed=0)
+        t0 = time.perf_counter()
+        for a in actions:
+            env.step(a)
+        env_ms.append(1e3 * (time.perf_counter() - t0) / len(actions))
+        mujoco.mj_copyData(d, m, u.data)
+        t0 = time.perf_counter()
+        mujoco.mj_step(m, d, 100)
+        step_us.append(1e6 * (time.perf_counter() - t0) / 100)
+    print(f"mujoco {mujoco.__version__}: {np.median(env_ms):.3f} ms per env step, "
+          f"{np.median(step_us):.2f} us per mj_step (medians of {blocks} blocks)")
+
+
 def compare(paths: list[str]) -> None:
     runs = [json.load(open(p)) for p in paths]
     print("| file | mujoco | jacobian | episodes | successes | sim_unstable | median step ms |")
@@ -108,7 +140,14 @@ def main(argv=None) -> int:
     p.add_argument("--out", help="JSON file to write (atomically)")
     p.add_argument("--compare", nargs="+", metavar="JSON",
                    help="compare result files instead of running (the first is the reference)")
+    p.add_argument("--timing", type=int, metavar="N",
+                   help="time N blocks instead of running episodes (see above)")
     a = p.parse_args(argv)
+    if a.timing is not None:
+        if a.timing < 1:
+            p.error(f"--timing must be >= 1, got {a.timing}")
+        timing(a.timing)
+        return 0
     if a.compare:
         compare(a.compare)
         return 0

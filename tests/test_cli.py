@@ -52,3 +52,19 @@ def test_console_script_is_installed():
     r = subprocess.run([sys.executable, "-m", "window_bench.cli", "--help"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "calibrate" in r.stdout and "install" in r.stdout
+
+
+def test_every_option_has_help_and_shows_its_default():
+    import argparse
+
+    from window_bench.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for name, parser in sub.choices.items():
+        for action in parser._actions:
+            if action.option_strings and not isinstance(action, argparse._HelpAction):
+                assert action.help, f"bench {name} {action.option_strings[0]} has no help"
+        text = parser.format_help()
+        if any(a.default not in (None, False, argparse.SUPPRESS) for a in parser._actions
+               if a.option_strings and a.help):
+            assert "(default:" in text, f"bench {name} --help shows no defaults"

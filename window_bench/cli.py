@@ -357,44 +357,81 @@ def cmd_tables(args) -> int:
     return 0
 
 
+def cmd_video(args) -> int:
+    from window_bench.video import check_args, record
+
+    try:
+        check_args(args.cameras, args.size, args.fps)
+        rows = record(args.env, args.policy, list(range(args.seed, args.seed + args.episodes)),
+                      args.out, cameras=args.cameras, size=args.size, fps=args.fps)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    for r in rows:
+        outcome = "seated" if r["success"] else r["failure_mode"]
+        print(f"seed {r['seed']}: {outcome} after {r['steps']} steps -> "
+              f"{Path(args.out) / r['file']} ({r['bytes'] / 1e6:.2f} MB)")
+    return 0
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Every option's default in its help line; descriptions kept as written."""
+
+
+class _SubParser(argparse.ArgumentParser):
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message):
+        _Parser.error(self, message)
+
+
+ENV_HELP = "registered env id: WindowInstall-{A,B}[-Panel40x40|-Panel60x60|-Panel60x40]-v0"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="command", required=True)
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_SubParser)
     i = sub.add_parser("install", help="run a reference controller and print per-episode stages")
-    i.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
-    i.add_argument("--episodes", type=_positive, default=3)
+    i.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
+    i.add_argument("--episodes", type=_positive, default=3, help="episodes (>= 1)")
     i.add_argument("--seed", type=_seed, default=0, help="first episode seed")
-    i.add_argument("--controller", choices=sorted(CONTROLLERS), default="installer")
+    i.add_argument("--controller", choices=sorted(CONTROLLERS), default="installer",
+                   help="reference controller")
     i.add_argument("--out", type=_out_file, help="also write the episodes and summary to this JSON file")
     i.set_defaults(func=cmd_install)
     c = sub.add_parser("calibrate", help="difficulty calibration: success and failure modes per controller")
-    c.add_argument("--env", type=_env_id, nargs="+", default=["WindowInstall-A-v0", "WindowInstall-B-v0"])
+    c.add_argument("--env", type=_env_id, nargs="+", default=["WindowInstall-A-v0", "WindowInstall-B-v0"],
+                   help=ENV_HELP + "; one or more")
     c.add_argument("--controllers", nargs="+", choices=sorted(CONTROLLERS),
-                   default=["installer", "straight_push", "random"])
-    c.add_argument("--episodes", type=_positive, default=100)
-    c.add_argument("--seed", type=_seed, default=0)
+                   default=["installer", "straight_push", "random"], help="reference controllers")
+    c.add_argument("--episodes", type=_positive, default=100, help="episodes per env and controller")
+    c.add_argument("--seed", type=_seed, default=0, help="first episode seed")
     c.add_argument("--out", type=_out_dir, default="runs/calibration", help="results directory (resumes if present)")
     c.set_defaults(func=cmd_calibrate)
     from window_bench.installer.operators import OPERATORS
 
     d = sub.add_parser("demos", help="collect successful human-like demonstrations (Minari)")
-    d.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
+    d.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
     d.add_argument("--n", type=_positive, default=50, help="successful demonstrations to keep")
     d.add_argument("--out", type=_out_dir, default="data", help="Minari datasets root (resumes if present)")
-    d.add_argument("--operator", choices=sorted(OPERATORS), default="average")
+    d.add_argument("--operator", choices=sorted(OPERATORS), default="average",
+                   help="operator profile of the demonstrator")
     d.add_argument("--seed", type=_seed, default=0, help="seed of the first attempt")
     d.add_argument("--max-attempts", type=_positive, default=None,
-                   help="give up after this many episodes (default 2 n)")
+                   help="give up after this many episodes (None: 2 n)")
     d.set_defaults(func=cmd_demos)
     v = sub.add_parser("supervise", help="takeover counts and minutes of operator profiles "
                                          "supervising a reference controller")
-    v.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
-    v.add_argument("--controller", choices=sorted(CONTROLLERS), default="random")
+    v.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
+    v.add_argument("--controller", choices=sorted(CONTROLLERS), default="random",
+                   help="the supervised reference controller")
     v.add_argument("--operator", choices=sorted(OPERATORS), nargs="+",
-                   default=["expert", "average", "novice"])
-    v.add_argument("--episodes", type=_positive, default=20)
-    v.add_argument("--seed", type=_seed, default=0)
+                   default=["expert", "average", "novice"], help="operator profiles, one after another")
+    v.add_argument("--episodes", type=_positive, default=20, help="episodes per operator")
+    v.add_argument("--seed", type=_seed, default=0, help="first episode seed")
     v.add_argument("--h", type=_positive, default=10, help="chunk grid of the supervised policy")
     v.add_argument("--out", type=_out_file, help="write the rows to this JSON file")
     v.set_defaults(func=cmd_supervise)
@@ -409,16 +446,18 @@ def build_parser() -> argparse.ArgumentParser:
     m = sub.add_parser("methods", help="print Table 1 (methods and their components)")
     m.set_defaults(func=cmd_methods)
     r = sub.add_parser("run", help="train one method through the matched-budget harness")
-    r.add_argument("--method", required=True, type=_choice(METHODS, "method"))
-    r.add_argument("--env", type=_env_id, default="WindowInstall-A-v0")
-    r.add_argument("--profile", type=_choice(PROFILES, "profile"), default="smoke")
-    r.add_argument("--seed", type=_seed, default=0)
+    r.add_argument("--method", required=True, type=_choice(METHODS, "method"),
+                   help="Table 1 method: " + ", ".join(METHODS))
+    r.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
+    r.add_argument("--profile", type=_choice(PROFILES, "profile"), default="smoke",
+                   help="budget profile: " + ", ".join(PROFILES))
+    r.add_argument("--seed", type=_seed, default=0, help="run seed (agent, envs, evaluation order)")
     r.add_argument("--out", type=_out_dir, required=True, help="run directory")
     r.add_argument("--resume", action="store_true", help="continue the run saved in --out")
     r.add_argument("--operator", choices=sorted(OPERATORS), default="average",
                    help="operator profile for demonstrations and takeovers")
     r.add_argument("--demos", help="Minari datasets root holding the demonstrations "
-                                   "(default: collect them into OUT/demos)")
+                                   "(None: collect them into OUT/demos)")
     r.add_argument("--acceptance-noise", nargs=3, metavar=("FP", "FN", "DELAY"), default=None,
                    help="train on a noisy acceptance sensor: false-positive rate per step, "
                         "false-negative rate, delay in steps (evaluation keeps true acceptance)")
@@ -428,24 +467,25 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_run)
     e = sub.add_parser("eval", help="evaluate a saved policy (interventions off)")
     e.add_argument("checkpoint", help="a policies/step_*.pt file of a run")
-    e.add_argument("--episodes", type=_positive, default=100)
-    e.add_argument("--env", type=_env_id, default=None, help="default: the training env")
+    e.add_argument("--episodes", type=_positive, default=100, help="evaluation episodes")
+    e.add_argument("--env", type=_env_id, default=None,
+                   help=ENV_HELP + " (None: the env the policy was trained on)")
     e.add_argument("--out", type=_out_file, help="write the summary to this JSON file")
     e.set_defaults(func=cmd_eval)
     lb = sub.add_parser("leaderboard", help="regenerate the leaderboard from raw run files")
     lb.add_argument("--add", nargs="+", metavar="RUN_DIR", help="first copy these finished "
                                                                 "runs' raw files in")
-    lb.add_argument("--root", default="leaderboard/runs")
+    lb.add_argument("--root", default="leaderboard/runs", help="leaderboard runs root")
     lb.set_defaults(func=cmd_leaderboard)
     sw = sub.add_parser("sweep", help="run a grid of cells (experiments/*.toml) on Ray; "
                                       "finished cells are skipped, partial ones resumed")
     sw.add_argument("grid", help="a grid file, e.g. experiments/table2.toml")
     sw.add_argument("--out", default="runs/grid", help="runs root: one directory per cell")
     sw.add_argument("--workers", type=_positive, default=None,
-                    help="cells at a time (default: one per CPU of the Ray cluster)")
+                    help="cells at a time (None: one per CPU of the Ray cluster)")
     sw.add_argument("--address", default=None,
                     help="join an existing Ray cluster (e.g. 127.0.0.1:6379 after "
-                         "`ray start --head`); default: start one on this machine")
+                         "`ray start --head`); None: start one on this machine")
     sw.add_argument("--no-progress", action="store_true", help="one line per finished cell only")
     sw.add_argument("--no-stage1-cache", action="store_true",
                     help="every cell computes its own Stage I (to measure what the cache saves)")
@@ -456,10 +496,34 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--out", default="docs/results", help="where the pages and figures go")
     tb.add_argument("--no-figures", action="store_true", help="tables only")
     tb.set_defaults(func=cmd_tables)
+    from window_bench.video import CAMERAS, FPS_RANGE, SIZE_RANGE
+
+    vd = sub.add_parser("video", help="record episodes of a policy file or reference controller "
+                                      "as MP4 (wrist, side and overview cameras)")
+    vd.add_argument("--policy", default="installer",
+                    help="a reference controller (" + ", ".join(sorted(CONTROLLERS)) + ") or a "
+                         "policies/step_*.pt file of a run")
+    vd.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
+    vd.add_argument("--seed", type=_seed, default=0, help="first episode seed")
+    vd.add_argument("--episodes", type=_positive, default=1, help="episodes, one file each")
+    vd.add_argument("--out", type=_out_dir, default="runs/videos", help="directory for the MP4s "
+                    "and videos.json")
+    vd.add_argument("--cameras", nargs="+", choices=list(CAMERAS), default=list(CAMERAS),
+                    help="views, tiled left to right")
+    vd.add_argument("--size", type=_positive, default=240,
+                    help=f"view height in px, {SIZE_RANGE[0]}-{SIZE_RANGE[1]}")
+    vd.add_argument("--fps", type=_positive, default=10,
+                    help=f"frames per second, {FPS_RANGE[0]}-{FPS_RANGE[1]} (10 = real time)")
+    vd.set_defaults(func=cmd_video)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
+    # Logs go to stderr, results to stdout: torchrl's console logger writes to stdout unless
+    # told otherwise when it is first imported (spawned workers inherit the setting).
+    import os
+
+    os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")
     args = build_parser().parse_args(argv)
     return args.func(args)
 

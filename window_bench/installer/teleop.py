@@ -926,11 +926,11 @@ def add_teleop_parser(subparsers) -> argparse.ArgumentParser:
         description="Teleoperate the window installation in the MuJoCo viewer and record "
                     "demonstrations (provenance 'demo') as a Minari dataset. Needs a display "
                     f"and the teleop extra: {INSTALL_HINT}. See docs/teleop.md.")
-    p.add_argument("--env", type=_env_arg, default="WindowInstall-A-v0")
-    p.add_argument("--device", choices=DEVICES, default="keyboard")
+    p.add_argument("--env", type=_env_arg, default="WindowInstall-A-v0", help="registered env id")
+    p.add_argument("--device", choices=DEVICES, default="keyboard", help="input device")
     p.add_argument("--record", metavar="DIR",
                    help="datasets root to save the demonstrations in (appends if present)")
-    p.add_argument("--episodes", type=_int_arg(1), default=1)
+    p.add_argument("--episodes", type=_int_arg(1), default=1, help="episodes to teleoperate")
     p.add_argument("--seed", type=_int_arg(0), default=0, help="seed of the first episode")
     p.add_argument("--max-steps", type=_int_arg(1, MAX_STEPS), default=MAX_STEPS,
                    help=f"time limit in 10 Hz steps (1..{MAX_STEPS})")
