@@ -254,6 +254,13 @@ def cmd_methods(args) -> int:
 
 
 def cmd_run(args) -> int:
+    from window_bench.harness.files import RunFileError, check_unlocked
+
+    try:   # before importing torch: a second writer stops at once
+        check_unlocked(args.out)
+    except RunFileError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     from window_bench.harness.run import Run
 
     try:

@@ -136,10 +136,6 @@ def parse_state(data: bytes, path, kind: str):
     from safetensors import SafetensorError
     from safetensors.torch import load
 
-    if data.startswith(_PICKLE_MAGIC):
-        raise RunFileError(f"{path}: a pickle file (torch.save), refused: loading pickle can "
-                           f"run code; window-bench reads only the .safetensors files bench "
-                           f"run writes")
     fix = "restore it from a copy or start a new run"
     try:
         (n,) = struct.unpack("<Q", data[:8])
@@ -149,6 +145,10 @@ def parse_state(data: bytes, path, kind: str):
         tensors = load(data)
     except (SafetensorError, ValueError, KeyError, TypeError, AttributeError, RecursionError,
             struct.error) as e:
+        if data.startswith(_PICKLE_MAGIC):   # never unpickled: named, to say why
+            raise RunFileError(f"{path}: a pickle file (torch.save), refused: loading pickle "
+                               f"can run code; window-bench reads only the .safetensors files "
+                               f"bench run writes") from None
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise RunFileError(f"{path}: not a readable window-bench file (truncated or corrupt: "
                            f"{msg}); {fix}") from None
@@ -243,6 +243,28 @@ def _holder(fd: int) -> str:
     return text or "a process that has not written its pid yet"
 
 
+def _in_use(out, holder: str) -> str:
+    return (f"--out {out}: in use by another bench process ({holder}); wait for it to finish "
+            f"or choose another --out")
+
+
+def check_unlocked(out) -> None:
+    """Stop at once, before any heavy import, when another process holds ``out``'s lock
+    (a momentary shared lock; :meth:`RunDir._lock` retries briefly for this probe)."""
+    import fcntl
+
+    path = Path(out) / LOCK
+    if not path.is_file():
+        return
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise RunFileError(_in_use(out, _holder(fd))) from None
+    finally:
+        os.close(fd)
+
+
 def check_out_dir(out) -> Path:
     """``out`` must be a directory or creatable as one by this user; nothing is written."""
     out = Path(out)
@@ -305,21 +327,26 @@ class RunDir:
         import fcntl
 
         fd = os.open(self.path / LOCK, os.O_RDWR | os.O_CREAT, 0o666)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = _holder(fd)
-            os.close(fd)
-            raise RunFileError(f"--out {self.path}: in use by another bench process ({holder}); "
-                               f"wait for it to finish or choose another --out") from None
+        for attempt in range(20):   # 1 s: outlasts another command's check_unlocked probe
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if attempt == 19:
+                    holder = _holder(fd)
+                    os.close(fd)
+                    raise RunFileError(_in_use(self.path, holder)) from None
+                time.sleep(0.05)
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()}: {' '.join(sys.argv)} (since "
                       f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())})\n".encode(), 0)
         self._fd = fd
 
     def close(self) -> None:
-        """Release the lock (the OS also releases it when the process dies)."""
+        """Release the lock, emptying the holder's line (the OS releases the lock, not the
+        line, when the process dies: the next holder overwrites it)."""
         if self._fd is not None:
+            os.ftruncate(self._fd, 0)
             os.close(self._fd)
             self._fd = None
 
