@@ -2,57 +2,60 @@
 
 Section 4.3 of the paper: "Standard SAC employs step-wise actions (h = 1), initializes the
 replay buffer with D_demo, and performs neither offline pretraining nor human intervention
-during online learning." SB3 owns the training loop; this module only
+during online learning." SB3 stays the SAC implementation (its policy, losses, entropy
+tuning and replay buffer); the harness owns the loop, as for every other method. This
+module
 
 * builds the model with SB3's defaults (:func:`make_sac`; the overrides a caller passes are
   the only departures) and pre-fills its replay buffer with every demonstration
   transition, sized so that the demos are never overwritten during the budget;
-* runs ``learn`` with a callback that hands the harness a checkpoint every
-  ``checkpoint_every`` environment steps (:func:`train_sac`);
-* saves and restores model and replay buffer atomically for resumable runs
-  (:func:`save_sac`, :func:`load_sac`);
-* wraps the model as an ``h = 1`` policy for evaluation (:class:`SACPolicy`).
+* adapts it to the harness's :class:`~window_bench.harness.agent.Agent` interface
+  (:class:`SACAgent`): the harness's rollouts fill SB3's buffer (one finished episode at a
+  time, :func:`add_episodes`), each learner call is SB3's own
+  ``model.train(gradient_steps=1, batch_size)``, and the resume state is plain data (the
+  networks, the entropy coefficient, the three optimisers and the buffer's arrays), not
+  SB3's pickled ``save``;
+* wraps the actor as an ``h = 1`` policy for evaluation (:class:`SACPolicy`).
 
-Episode ends: a demo step that TERMINATED is stored ``done`` (no bootstrap); a step cut by
+Episode ends: a step that TERMINATED is stored ``done`` (no bootstrap); a step cut by
 the time limit is stored ``done`` with ``info["TimeLimit.truncated"] = True``, which SB3's
 buffer (``handle_timeout_termination=True``, its default) records as a timeout and does not
-treat as terminal - the same convention SB3 applies to its own online transitions.
+treat as terminal - the convention SB3 applies to its own online transitions.
 """
 
 from __future__ import annotations
 
-import json
-import numbers
-import os
-from pathlib import Path
-from typing import Callable
-
+import gymnasium as gym
 import numpy as np
+import torch
+from gymnasium import spaces
 from stable_baselines3 import SAC
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.sac.policies import SACPolicy as SB3SACPolicy
+from torch import nn
 
-from window_bench.harness.evaluation import atomic_write, atomic_write_text, provenance
 from window_bench.data.steplog import EpisodeLog
+from window_bench.harness.agent import (Agent, AgentSpec, check_int, load_optimizer_state,
+                                        module_state, no_overrides, optimizer_state, plain)
 
-#: SB3 2.x defaults of ``SAC`` that this baseline keeps (disclosed in docs/baselines.md).
+#: SB3 2.x defaults of ``SAC`` that this baseline keeps (disclosed in docs/baselines.md), and
+#: the three settings of SB3's ``learn`` loop that the harness's loop replaces.
 SB3_SAC_DEFAULTS = {
     "policy": "MlpPolicy (actor and 2 critics, 256x256 ReLU each)",
-    "learning_rate": 3e-4, "buffer_size": 1_000_000, "learning_starts": 100,
-    "batch_size": 256, "tau": 0.005, "gamma": 0.99, "train_freq": 1, "gradient_steps": 1,
-    "ent_coef": "auto (init 1.0)", "target_entropy": "auto (-dim(A) = -7)",
+    "learning_rate": 3e-4, "buffer_size": 1_000_000, "batch_size": 256, "tau": 0.005,
+    "gamma": 0.99, "ent_coef": "auto (init 1.0)", "target_entropy": "auto (-dim(A) = -7)",
     "target_update_interval": 1, "use_sde": False, "optimize_memory_usage": False,
     "handle_timeout_termination": True,
+    "learning_starts": "none (SB3 default 100): the buffer starts with D_demo, training "
+                       "starts at the first step as for the other methods",
+    "train_freq / gradient_steps": "the profile's UTD (cpu: 1 per env step = SB3's default)",
+    "replay insertion": "a training episode enters the buffer when it ends (SB3: each step)",
 }
-CHECKPOINT_FILE = "sac_checkpoint.json"
-
-
-def _check_int(name: str, value, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
-        raise ValueError(f"{name} = {value!r} is not allowed: it must be an integer "
-                         f">= {minimum}")
-    return int(value)
+#: The replay buffer's per-transition arrays (the resume state keeps the filled rows).
+_BUFFER_FIELDS = ("observations", "next_observations", "actions", "rewards", "dones",
+                  "timeouts")
 
 
 def demo_transitions(demos: list[EpisodeLog]) -> int:
@@ -60,8 +63,9 @@ def demo_transitions(demos: list[EpisodeLog]) -> int:
     return int(sum(ep.T for ep in demos))
 
 
-def prefill_replay_buffer(model: SAC, demos: list[EpisodeLog]) -> int:
-    """Append every transition of ``demos`` to ``model.replay_buffer``, in order.
+def add_episodes(model: SAC, demos: list[EpisodeLog]) -> int:
+    """Append every transition of ``demos`` (the demonstrations, or a finished training
+    episode) to ``model.replay_buffer``, in order.
 
     Actions are clipped to the action space (the env executes them clipped) and scaled to
     [-1, 1] as SB3 stores its own. ``done = terminated or truncated`` with
@@ -75,7 +79,7 @@ def prefill_replay_buffer(model: SAC, demos: list[EpisodeLog]) -> int:
         ep.validate()
         obs = np.asarray(ep.observations, dtype=np.float32)
         if obs.shape[1:] != model.observation_space.shape:
-            raise ValueError(f"demo episode {ep.episode_id}: observations have size "
+            raise ValueError(f"episode {ep.episode_id}: observations have size "
                              f"{obs.shape[1:]}, the env's observation space "
                              f"{model.observation_space.shape}")
         actions = np.clip(ep.actions, low, high)
@@ -99,12 +103,13 @@ def make_sac(env, demos: list[EpisodeLog], seed: int, total_steps: int, **overri
     Parameters
     ----------
     env : gymnasium.Env
-        One environment, e.g. ``gym.make("WindowInstall-A-v0", obs_mode="flat")`` (its
-        ``TimeLimit`` of 600 steps marks truncation).
+        One environment, e.g. ``gym.make("WindowInstall-A-v0", obs_mode="flat")``, or
+        :func:`spaces_env` (SB3 only reads the spaces: the harness steps the environment).
     demos : list of EpisodeLog
         The demonstration dataset ``D_demo``; every transition is pre-filled.
     seed : int
-        Passed to SB3 (which seeds Python's, NumPy's and torch's global RNGs and the env).
+        Passed to SB3 (which seeds Python's, NumPy's and torch's global RNGs and the env;
+        SB3 samples actions and batches with the global RNGs, which the harness saves).
     total_steps : int
         The online budget in environment steps. The buffer holds
         ``buffer_size = n_demo + total_steps`` transitions unless overridden, so it never
@@ -116,8 +121,8 @@ def make_sac(env, demos: list[EpisodeLog], seed: int, total_steps: int, **overri
         breaks at the demos' episode ends) and ``handle_timeout_termination=False`` raise
         ``ValueError``.
     """
-    seed = _check_int("seed", seed, 0)
-    total_steps = _check_int("total_steps", total_steps, 1)
+    seed = check_int("seed", seed, 0)
+    total_steps = check_int("total_steps", total_steps, 1)
     if not demos:
         raise ValueError("make_sac: got no demos; the sac baseline pre-fills its buffer with "
                          "D_demo")
@@ -142,8 +147,19 @@ def make_sac(env, demos: list[EpisodeLog], seed: int, total_steps: int, **overri
     model = SAC("MlpPolicy", env, **kwargs)
     if model.n_envs != 1:
         raise ValueError(f"make_sac needs a single environment, got n_envs = {model.n_envs}")
-    model.n_demo_transitions = prefill_replay_buffer(model, demos)  # saved with the model
+    model.n_demo_transitions = add_episodes(model, demos)
+    model.overrides = dict(overrides)   # in the resume state (SACAgent.state_dict)
     return model
+
+
+def spaces_env(obs_dim: int, action_dim: int = 7) -> gym.Env:
+    """An env with the flat track's spaces (``WindowInstallEnv(obs_mode="flat")``: unbounded
+    float32 observations, actions in [-1, 1]) for building the model: SB3 reads the spaces
+    from an env, the harness steps the real one."""
+    env = gym.Env()
+    env.observation_space = spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
+    env.action_space = spaces.Box(-1.0, 1.0, (action_dim,), np.float32)
+    return env
 
 
 def _no_learning_rate(_progress: float) -> float:
@@ -157,8 +173,9 @@ class SACPolicy:
     ``SACPolicy(model)`` wraps ``model.policy`` (a live view: it acts with the model's
     current weights). ``act(obs)`` returns (1, 7) for one observation and (B, 1, 7) for a
     batch, via SB3's ``predict`` (deterministic by default: the tanh of the Gaussian mean).
-    :meth:`state_dict` / :meth:`from_state_dict` copy the policy into a plain dict and
-    rebuild it without the model, env or replay buffer (for evaluation workers).
+    :meth:`policy_state_dict` / :meth:`from_policy_state_dict` copy the actor and the
+    architecture into plain data and rebuild it without the model, env or replay buffer
+    (for evaluation workers).
     """
 
     h = 1
@@ -182,127 +199,137 @@ class SACPolicy:
         action = np.asarray(action, dtype=np.float32)
         return action.reshape(1, -1) if x.shape == shape else action[:, None, :]
 
-    def state_dict(self) -> dict:
-        """The policy's constructor arguments (spaces, architecture) and a copy of its
-        weights; picklable, no optimiser, env or buffer."""
-        params = self.policy._get_constructor_parameters()
-        params.pop("lr_schedule", None)  # a bound method of this policy; rebuilt as a no-op
-        weights = {k: v.detach().clone() for k, v in self.policy.state_dict().items()}
-        return {"sb3_policy": params, "weights": weights}
+    def policy_state_dict(self) -> dict:
+        """The actor's weights, the spaces and the architecture, as plain data."""
+        p = self.policy
+        params = p._get_constructor_parameters()
+        if (params["features_extractor_class"] is not FlattenExtractor
+                or params["features_extractor_kwargs"]):
+            raise ValueError(f"SACPolicy.policy_state_dict: features extractor "
+                             f"{params['features_extractor_class'].__name__} is not "
+                             f"supported (SB3's MlpPolicy uses FlattenExtractor)")
+        return {"obs_dim": int(p.observation_space.shape[0]),
+                "action_low": p.action_space.low.copy(), "action_high": p.action_space.high.copy(),
+                "architecture": plain({**{k: params[k] for k in (
+                    "net_arch", "use_sde", "log_std_init", "use_expln", "clip_mean",
+                    "n_critics", "normalize_images")},
+                    "share_features_extractor": p.share_features_extractor}),
+                "activation": params["activation_fn"].__name__,
+                "actor": module_state(p.actor)}
 
     @classmethod
-    def from_state_dict(cls, state: dict) -> "SACPolicy":
-        """Rebuild a :meth:`state_dict` copy on the CPU, in evaluation mode."""
-        policy = SB3SACPolicy(**state["sb3_policy"], lr_schedule=_no_learning_rate)
-        policy.load_state_dict(state["weights"])
+    def from_policy_state_dict(cls, state: dict) -> "SACPolicy":
+        """Rebuild a :meth:`policy_state_dict` copy on the CPU, in evaluation mode."""
+        activation = getattr(nn, state["activation"], None)
+        if not (isinstance(activation, type) and issubclass(activation, nn.Module)):
+            raise ValueError(f"activation {state['activation']!r} is not a torch.nn module")
+        low, high = np.asarray(state["action_low"]), np.asarray(state["action_high"])
+        policy = SB3SACPolicy(spaces.Box(-np.inf, np.inf, (state["obs_dim"],), np.float32),
+                              spaces.Box(low, high, dtype=np.float32), _no_learning_rate,
+                              activation_fn=activation, **state["architecture"])
+        policy.actor.load_state_dict(state["actor"])
         policy.set_training_mode(False)
         return cls(policy)
 
 
-class _CheckpointCallback(BaseCallback):
-    """Calls ``on_checkpoint(k)`` once ``k`` (a multiple of ``every``) environment steps
-    AND their gradient steps are done.
+class SACAgent(Agent):
+    """SB3 SAC as a harness agent (see the module docstring); ``SACAgent(model)`` wraps a
+    model from :func:`make_sac`."""
 
-    SB3 calls ``on_step`` after ``env.step`` but before it stores the transition and
-    trains, so the check runs at the start of the next rollout (after the training of the
-    previous one) and once more when ``learn`` ends.
-    """
+    h = 1
+    own_replay = True   # SB3's buffer, with D_demo pre-filled
 
-    def __init__(self, every: int, on_checkpoint: Callable[[int], None]):
-        super().__init__(verbose=0)
-        self.every, self.on_checkpoint = every, on_checkpoint
-        self.last_reported = 0
+    def __init__(self, model: SAC):
+        self.model = model
+        self.policy = SACPolicy(model)
+        # SB3's train() records its losses in the model's logger; nothing is written.
+        model.set_logger(Logger(None, []))
 
-    def _on_training_start(self) -> None:
-        # A resumed run does not report the checkpoint it was saved at again.
-        self.last_reported = self.model.num_timesteps
+    @classmethod
+    def create(cls, spec: AgentSpec) -> "SACAgent":
+        no_overrides("sac", spec.overrides)
+        return cls(make_sac(spaces_env(spec.obs_dim, spec.action_dim), spec.demos, spec.seed,
+                            spec.profile.budget_steps))
 
-    def _report_if_due(self) -> None:
-        k = self.model.num_timesteps
-        if k > self.last_reported and k % self.every == 0:
-            self.last_reported = k
-            self.on_checkpoint(k)
+    @property
+    def gamma(self) -> float:
+        return self.model.gamma
 
-    def _on_rollout_start(self) -> None:
-        self._report_if_due()
+    def learn(self, sample) -> tuple[dict[str, float], int]:
+        """SB3's own ``train(gradient_steps=1, batch_size)`` on its buffer (``sample`` is not
+        used); returns the losses SB3 recorded."""
+        self.model.train(gradient_steps=1, batch_size=self.model.batch_size)
+        log = self.model.logger
+        metrics = {k.split("/", 1)[-1]: float(v) for k, v in log.name_to_value.items()
+                   if isinstance(v, (int, float, np.floating))}
+        log.dump()   # clears the recorded values
+        return metrics, 1
 
-    def _on_step(self) -> bool:
-        return True
+    def add_episode(self, log: EpisodeLog) -> None:
+        self.model.num_timesteps += add_episodes(self.model, [log])
 
-    def _on_training_end(self) -> None:
-        self._report_if_due()
+    def act(self, obs, deterministic: bool = False) -> np.ndarray:
+        return self.policy.act(obs, deterministic)
 
+    def hyperparameters(self) -> dict:
+        return {**SB3_SAC_DEFAULTS, "buffer_size": int(self.model.buffer_size),
+                "seed": int(self.model.seed),
+                "demo_transitions": int(self.model.n_demo_transitions)}
 
-def train_sac(model: SAC, total_steps: int, checkpoint_every: int,
-              on_checkpoint: Callable[[int], None], progress: bool = False) -> None:
-    """Run ``model.learn`` until ``model.num_timesteps == total_steps``.
+    # ------------------------------------------------------------------ state
+    def policy_state_dict(self) -> dict:
+        return self.policy.policy_state_dict()
 
-    ``on_checkpoint(k)`` is called for every multiple ``k`` of ``checkpoint_every`` reached,
-    after step ``k``'s transition is stored and its gradient step done (the harness
-    evaluates, and may :func:`save_sac`, there). A model restored by :func:`load_sac`
-    continues from its ``num_timesteps`` (its env restarts with a fresh episode).
-    """
-    total_steps = _check_int("total_steps", total_steps, 1)
-    checkpoint_every = _check_int("checkpoint_every", checkpoint_every, 1)
-    remaining = total_steps - model.num_timesteps
-    if remaining <= 0:
-        return
-    model.learn(total_timesteps=remaining, callback=_CheckpointCallback(checkpoint_every,
-                                                                        on_checkpoint),
-                reset_num_timesteps=False, progress_bar=progress)
+    @classmethod
+    def from_policy_state_dict(cls, state: dict) -> SACPolicy:
+        return SACPolicy.from_policy_state_dict(state)
 
+    def state_dict(self) -> dict:
+        """Everything SB3's ``train`` reads, as plain data: the policy (actor, critics,
+        target critics), the entropy coefficient, the three optimisers, the filled rows of
+        the replay buffer and the counters. SB3 draws with the global RNGs, which the
+        harness saves with its own state."""
+        m, rb = self.model, self.model.replay_buffer
+        n = rb.buffer_size if rb.full else rb.pos
+        return {"obs_dim": int(m.observation_space.shape[0]),
+                "action_dim": int(m.action_space.shape[0]), "seed": int(m.seed),
+                "buffer_size": int(rb.buffer_size), "overrides": plain(m.overrides),
+                "num_timesteps": int(m.num_timesteps),
+                "n_updates": int(m._n_updates), "n_demo_transitions": int(m.n_demo_transitions),
+                "policy": module_state(m.policy),
+                "log_ent_coef": m.log_ent_coef.detach().clone(),
+                "actor_optimizer": optimizer_state(m.actor.optimizer),
+                "critic_optimizer": optimizer_state(m.critic.optimizer),
+                "ent_coef_optimizer": optimizer_state(m.ent_coef_optimizer),
+                "replay": {"pos": int(rb.pos), "full": bool(rb.full),
+                           **{f: getattr(rb, f)[:n].copy() for f in _BUFFER_FIELDS}}}
 
-# --------------------------------------------------------------------------- checkpoints
-def _atomic_write_binary(path: Path, write: Callable) -> None:
-    """``write(fileobj)`` into a temporary file next to ``path``, then rename it into place."""
-    atomic_write(path, write)
+    def load_state_dict(self, state: dict) -> None:
+        m, rb = self.model, self.model.replay_buffer
+        if state["buffer_size"] != rb.buffer_size:
+            raise ValueError(f"SACAgent.load_state_dict: buffer_size = {state['buffer_size']} "
+                             f"in the state, {rb.buffer_size} in this agent")
+        m.policy.load_state_dict(state["policy"])
+        with torch.no_grad():
+            m.log_ent_coef.copy_(state["log_ent_coef"])
+        load_optimizer_state(m.actor.optimizer, state["actor_optimizer"])
+        load_optimizer_state(m.critic.optimizer, state["critic_optimizer"])
+        load_optimizer_state(m.ent_coef_optimizer, state["ent_coef_optimizer"])
+        replay = state["replay"]
+        for f in _BUFFER_FIELDS:
+            getattr(rb, f)[: len(replay[f])] = replay[f]
+        rb.pos, rb.full = int(replay["pos"]), bool(replay["full"])
+        m.num_timesteps, m._n_updates = int(state["num_timesteps"]), int(state["n_updates"])
+        m.n_demo_transitions = int(state["n_demo_transitions"])
 
-
-def save_sac(model: SAC, directory: str | os.PathLike) -> Path:
-    """Save model and replay buffer under ``directory`` for a resume; returns the pointer file.
-
-    The model (``model_<k>.zip``) and the buffer (``replay_<k>.pkl``, ``k`` =
-    ``num_timesteps``) are each written atomically, then ``sac_checkpoint.json`` is
-    atomically replaced to point at them (with the provenance), and older pairs are
-    removed: a run killed at any moment leaves the previous complete checkpoint readable.
-    """
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    k = int(model.num_timesteps)
-    model_name, replay_name = f"model_{k}.zip", f"replay_{k}.pkl"
-    _atomic_write_binary(directory / model_name, model.save)
-    _atomic_write_binary(directory / replay_name, model.save_replay_buffer)
-    rb = model.replay_buffer
-    meta = {"num_timesteps": k, "model": model_name, "replay_buffer": replay_name,
-            "n_demo_transitions": int(getattr(model, "n_demo_transitions", 0)),
-            "buffer_pos": int(rb.pos), "buffer_full": bool(rb.full),
-            "provenance": provenance()}
-    pointer = directory / CHECKPOINT_FILE
-    atomic_write_text(pointer, json.dumps(meta, indent=2) + "\n")
-    for old in list(directory.glob("model_*.zip")) + list(directory.glob("replay_*.pkl")):
-        if old.name not in (model_name, replay_name):
-            old.unlink()
-    return pointer
-
-
-def load_sac(directory: str | os.PathLike, env) -> SAC:
-    """Restore the checkpoint :func:`save_sac` wrote under ``directory``, bound to ``env``.
-
-    Raises ``FileNotFoundError`` if there is none and ``ValueError`` if the model and the
-    buffer disagree with the pointer file.
-    """
-    directory = Path(directory)
-    pointer = directory / CHECKPOINT_FILE
-    if not pointer.exists():
-        raise FileNotFoundError(f"no SAC checkpoint in {directory} ({CHECKPOINT_FILE} missing)")
-    meta = json.loads(pointer.read_text())
-    model = SAC.load(directory / meta["model"], env=env, device="cpu")
-    model.load_replay_buffer(directory / meta["replay_buffer"])
-    rb = model.replay_buffer
-    if (model.num_timesteps != meta["num_timesteps"] or rb.pos != meta["buffer_pos"]
-            or rb.full != meta["buffer_full"]):
-        raise ValueError(f"load_sac: {directory} is inconsistent: model at "
-                         f"{model.num_timesteps} steps, buffer at pos {rb.pos} (full "
-                         f"{rb.full}); {CHECKPOINT_FILE} says {meta['num_timesteps']}, "
-                         f"{meta['buffer_pos']} ({meta['buffer_full']})")
-    return model
+    @classmethod
+    def from_state_dict(cls, state: dict) -> "SACAgent":
+        """A new agent restored from :meth:`state_dict` output. Building the SB3 model
+        reseeds the global RNGs: restore them afterwards (the harness does)."""
+        model = SAC("MlpPolicy", spaces_env(state["obs_dim"], state["action_dim"]),
+                    **{"buffer_size": state["buffer_size"], "seed": state["seed"],
+                       "device": "cpu", "verbose": 0, **state["overrides"]})
+        model.overrides = dict(state["overrides"])
+        agent = cls(model)
+        agent.load_state_dict(state)
+        return agent

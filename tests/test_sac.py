@@ -1,26 +1,26 @@
-"""SB3 SAC baseline (baselines.sac): demo pre-fill, episode ends, checkpoints, resume.
+"""SB3 SAC baseline (baselines.sac): demo pre-fill, episode ends, SB3's own train() driven
+from outside, plain resume state and the acting policy.
 
-One short ``learn`` (90 steps, TimeLimit 30 so that online episodes get truncated,
-learning_starts 20 and batch 32 to keep it fast) on WindowInstall-A-v0 with flat
-observations is shared by the tests of this file.
+One agent (TimeLimit 30 so that its online episodes get truncated, 3 episodes of 30 steps
+from the harness's Rollout, a learner call after each step) on WindowInstall-A-v0 with
+flat observations is shared by the tests of this file.
 """
-
-import json
-import pickle
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
-from baselines.sac import (CHECKPOINT_FILE, SACPolicy, demo_transitions, load_sac, make_sac,
-                           save_sac, train_sac)
-from window_bench.installer.scripted import ScriptedInstaller
+from baselines.sac import SACAgent, SACPolicy, demo_transitions, make_sac, spaces_env
 from window_bench.data.steplog import EpisodeLog
+from window_bench.harness.agent import check_plain
+from window_bench.harness.run import AgentPolicy
+from window_bench.installer.rollout import Rollout
+from window_bench.installer.scripted import ScriptedInstaller
 
 torch.set_num_threads(1)
-STEPS, EVERY, LEARNING_STARTS, LIMIT = 90, 30, 20, 30
-
+EPISODES, LIMIT = 3, 30
+STEPS = EPISODES * LIMIT
 
 def make_env():
     return gym.make("WindowInstall-A-v0", obs_mode="flat", max_episode_steps=LIMIT)
@@ -59,28 +59,30 @@ def demos():
 
 @pytest.fixture(scope="module")
 def trained(demos):
-    """A model pre-filled with the demos and trained for STEPS steps, with the callback's
-    observations at every checkpoint."""
+    """An agent pre-filled with the demos that collected EPISODES episodes through the
+    harness's Rollout and took one SB3 gradient step after each environment step."""
     env = make_env()
-    model = make_sac(env, demos, seed=0, total_steps=STEPS, learning_starts=LEARNING_STARTS,
-                     batch_size=32)
-    seen = []
-
-    def on_checkpoint(k):
-        seen.append({"k": k, "num_timesteps": model.num_timesteps,
-                     "stored": model.replay_buffer.size(), "updates": model._n_updates})
-
-    train_sac(model, STEPS, EVERY, on_checkpoint)
-    yield model, seen
+    agent = SACAgent(make_sac(spaces_env(env.observation_space.shape[0]), demos, seed=0,
+                              total_steps=STEPS, batch_size=32))
+    rollout = Rollout(env, AgentPolicy(agent, deterministic=False))
+    metrics = []
+    for ep in range(EPISODES):
+        rollout.reset(seed=ep, episode_id=ep)
+        while not rollout.done:
+            rollout.step()
+            metrics.append(agent.learn(None))
+        agent.add_episode(rollout.episode_log())
+    yield agent, metrics
     env.close()
 
 
 def test_buffer_holds_every_demo_transition_after_the_budget(demos, trained):
-    model, _ = trained
-    rb = model.replay_buffer
+    agent, _ = trained
+    rb = agent.model.replay_buffer
     n = demo_transitions(demos)
-    assert n == sum(ep.T for ep in demos) and model.n_demo_transitions == n
+    assert n == sum(ep.T for ep in demos) and agent.model.n_demo_transitions == n
     assert rb.buffer_size == n + STEPS and rb.size() == n + STEPS  # full, never wrapped
+    assert agent.model.num_timesteps == STEPS
     obs = np.concatenate([ep.observations[:-1] for ep in demos])
     nxt = np.concatenate([ep.observations[1:] for ep in demos])
     np.testing.assert_array_equal(rb.observations[:n, 0], obs)
@@ -90,16 +92,16 @@ def test_buffer_holds_every_demo_transition_after_the_budget(demos, trained):
 
 
 def test_timeouts_are_not_terminal(demos, trained):
-    model, _ = trained
-    rb = model.replay_buffer
+    agent, _ = trained
+    rb = agent.model.replay_buffer
     n = demo_transitions(demos)
     term = np.concatenate([ep.terminated for ep in demos])
     trunc = np.concatenate([ep.truncated for ep in demos])
     np.testing.assert_array_equal(rb.dones[:n, 0], term | trunc)
     np.testing.assert_array_equal(rb.timeouts[:n, 0], trunc)
-    # Online: TimeLimit 30 over 90 steps = 3 truncations, no acceptance with a fresh policy.
+    # Online: TimeLimit 30, three episodes = 3 truncations, no acceptance by a fresh policy.
     online_dones, online_timeouts = rb.dones[n:, 0], rb.timeouts[n:, 0]
-    assert online_dones.sum() == STEPS // LIMIT
+    assert online_dones.sum() == EPISODES
     np.testing.assert_array_equal(online_dones, online_timeouts)
     np.testing.assert_array_equal(np.flatnonzero(online_dones) + 1,
                                   np.arange(LIMIT, STEPS + 1, LIMIT))
@@ -108,19 +110,19 @@ def test_timeouts_are_not_terminal(demos, trained):
     assert np.flatnonzero(samples.dones.numpy()[:, 0]).tolist() == [demos[0].T - 1]
 
 
-def test_checkpoint_callback_fires_after_each_steps_update(demos, trained):
-    _, seen = trained
-    n = demo_transitions(demos)
-    assert [s["k"] for s in seen] == [30, 60, 90]
-    for s in seen:
-        assert s["num_timesteps"] == s["k"]
-        assert s["stored"] == n + s["k"]  # step k's transition is stored
-        assert s["updates"] == s["k"] - LEARNING_STARTS  # and step k's gradient step done
+def test_each_learner_call_is_one_sb3_gradient_step(trained):
+    agent, metrics = trained
+    assert agent.model._n_updates == STEPS
+    assert all(n == 1 for _, n in metrics)
+    first, last = metrics[0][0], metrics[-1][0]
+    assert {"actor_loss", "critic_loss", "ent_coef", "ent_coef_loss"} <= set(first)
+    assert first["n_updates"] == 1 and last["n_updates"] == STEPS
+    assert last["ent_coef"] < first["ent_coef"] <= 1.0   # SB3's entropy tuning is running
 
 
 def test_sac_policy_acts_and_evaluates(trained):
-    model, _ = trained
-    policy = SACPolicy(model)
+    agent, _ = trained
+    policy = SACPolicy(agent.model)
     env = make_env()
     obs, _ = env.reset(seed=123)
     policy.reset(seed=123)
@@ -130,7 +132,11 @@ def test_sac_policy_acts_and_evaluates(trained):
     assert policy.act(np.stack([obs, obs, obs])).shape == (3, 1, 7)
     with pytest.raises(ValueError, match="obs has shape"):
         policy.act(obs[:10])
-    copy = SACPolicy.from_state_dict(pickle.loads(pickle.dumps(policy.state_dict())))
+    state = agent.policy_state_dict()
+    check_plain(state)
+    assert set(state) == {"obs_dim", "action_low", "action_high", "architecture",
+                          "activation", "actor"}   # no critics, optimisers or buffer
+    copy = SACAgent.from_policy_state_dict(state)
     batch = np.stack([obs, 2 * obs])
     np.testing.assert_array_equal(copy.act(batch), policy.act(batch))
     steps, done = 0, False
@@ -141,51 +147,28 @@ def test_sac_policy_acts_and_evaluates(trained):
     assert steps == LIMIT
 
 
-def test_save_load_round_trip_and_resume(demos, trained, tmp_path):
-    model, _ = trained
-    save_sac(model, tmp_path)
-    meta = json.loads((tmp_path / CHECKPOINT_FILE).read_text())
-    assert meta["num_timesteps"] == STEPS and meta["provenance"]["git_commit"]
-    env = make_env()
-    loaded = load_sac(tmp_path, env)
-    assert loaded.num_timesteps == STEPS and loaded.n_demo_transitions == model.n_demo_transitions
-    for key, value in model.policy.state_dict().items():
-        assert torch.equal(value, loaded.policy.state_dict()[key]), key
+def test_state_round_trip_resumes_training_exactly(demos, trained):
+    agent, _ = trained
+    state = agent.state_dict()
+    check_plain(state)
+    assert state["replay"]["observations"].shape[0] == demo_transitions(demos) + STEPS
+    resumed = SACAgent.from_state_dict(state)
+    assert resumed.model.num_timesteps == STEPS and resumed.model._n_updates == STEPS
+    for key, value in agent.model.policy.state_dict().items():
+        assert torch.equal(value, resumed.model.policy.state_dict()[key]), key
     for field in ("observations", "next_observations", "actions", "rewards", "dones",
                   "timeouts"):
-        np.testing.assert_array_equal(getattr(model.replay_buffer, field),
-                                      getattr(loaded.replay_buffer, field))
-    obs = demos[0].observations[:5]
-    np.testing.assert_array_equal(SACPolicy(model).act(obs), SACPolicy(loaded).act(obs))
-
-    # The budget is spent: a resumed train_sac has nothing left to do.
-    seen = []
-    train_sac(loaded, STEPS, EVERY, seen.append)
-    assert seen == [] and loaded.num_timesteps == STEPS
-    env.close()
-
-
-def test_resume_mid_budget_continues_the_checkpoints(demos, tmp_path):
-    env = make_env()
-    model = make_sac(env, demos, seed=1, total_steps=60, learning_starts=10, batch_size=32)
-    saved = []
-
-    def on_checkpoint(k):
-        saved.append(k)
-        save_sac(model, tmp_path)
-
-    train_sac(model, 30, 15, on_checkpoint)  # the run is "killed" after step 30
-    assert saved == [15, 30]
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([
-        CHECKPOINT_FILE, "model_30.zip", "replay_30.pkl"])  # older pair removed
-    resumed = load_sac(tmp_path, env)
-    seen = []
-    train_sac(resumed, 60, 15, lambda k: seen.append((k, resumed.replay_buffer.size())))
-    n = demo_transitions(demos)
-    assert seen == [(45, n + 45), (60, n + 60)]
-    np.testing.assert_array_equal(resumed.replay_buffer.observations[:n, 0],
-                                  np.concatenate([ep.observations[:-1] for ep in demos]))
-    env.close()
+        np.testing.assert_array_equal(getattr(agent.model.replay_buffer, field),
+                                      getattr(resumed.model.replay_buffer, field))
+    # SB3 samples with the global RNGs (the harness saves them): same seeds, same step.
+    after = []
+    for a in (agent, resumed):
+        torch.manual_seed(3)
+        np.random.seed(3)
+        after.append(a.learn(None)[0])
+    assert after[0] == after[1]
+    for key, value in agent.model.policy.state_dict().items():
+        assert torch.equal(value, resumed.model.policy.state_dict()[key]), key
 
 
 def test_make_sac_refuses_settings_that_lose_demos_or_timeouts(demos):
@@ -203,6 +186,6 @@ def test_make_sac_refuses_settings_that_lose_demos_or_timeouts(demos):
     with pytest.raises(ValueError, match="total_steps"):
         make_sac(env, demos, seed=0, total_steps=0)
     model = make_sac(env, demos, seed=0, total_steps=100)
-    assert model.learning_starts == 100 and model.batch_size == 256  # SB3 defaults kept
+    assert model.batch_size == 256 and model.gamma == 0.99  # SB3 defaults kept
     assert model.replay_buffer.buffer_size == n + 100 and model.replay_buffer.pos == n
     env.close()

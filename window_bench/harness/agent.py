@@ -22,6 +22,7 @@ and the harness never asks which kind it holds. An agent
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import numbers
 from abc import ABC, abstractmethod
@@ -178,8 +179,10 @@ def check_plain(state, path: str = "state") -> None:
 
 
 def optimizer_state(optimizer: torch.optim.Optimizer) -> dict:
-    """``optimizer.state_dict()`` as plain data (parameter indices as str keys)."""
-    sd = optimizer.state_dict()
+    """A copy of ``optimizer.state_dict()`` as plain data (parameter indices as str keys).
+    A copy: torch's state dict holds the live moment tensors, which a loaded optimizer would
+    otherwise share and update in place."""
+    sd = copy.deepcopy(optimizer.state_dict())
     return plain({"state": {str(k): v for k, v in sd["state"].items()},
                   "param_groups": sd["param_groups"]})
 

@@ -25,6 +25,11 @@ hyperparameters, versions, git commit, every checkpoint), ``checkpoints.csv``,
 checkpoint under ``policies/`` (``bench eval`` reads them), and ``state.pt``, the atomic
 training state (agent, optimizer, replay, RNGs, counters) written at episode boundaries, from
 which ``--resume`` continues a killed run exactly where the state was saved.
+
+The harness runs every method through one loop: it holds an
+:class:`~window_bench.harness.agent.Agent` built from the registry
+(:data:`~window_bench.harness.methods.AGENTS`) and reads the agent's declared capabilities
+(its replay, where takeover steps go, its normaliser, its offline step count), never its kind.
 """
 
 from __future__ import annotations
@@ -42,10 +47,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from window_bench.harness.agent import Agent, AgentSpec
 from window_bench.harness.evaluation import atomic_write, atomic_write_text, provenance, wilson_interval
-from window_bench.harness.methods import Method, Profile, get_method, get_profile
+from window_bench.harness.methods import Method, Profile, agent_class, get_method, get_profile
 from window_bench.installer.rollout import Rollout
-from window_bench.data.steplog import STEP_DT
+from window_bench.data.steplog import ACTION_DIM, STEP_DT
 from window_bench.envs.task import FAILURE_MODES
 
 RESULTS_SCHEMA = 1
@@ -57,42 +63,16 @@ LOSS_LOG_EVERY = 500    # learner calls averaged into one TensorBoard point (los
 
 
 # ---------------------------------------------------------------------------- agents
-def make_agent(method: Method, profile: Profile, obs_dim: int, seed: int,
-               obs_mean=None, obs_std=None, overrides: dict | None = None):
-    """A fresh learner for ``method`` with the profile's sizes; ``overrides`` replace
-    fields of the agent's config (``bench run --agent-config KEY=VALUE``)."""
-    overrides = dict(overrides or {})
-    if overrides and method.agent not in ("qcfql", "hilserl"):
-        raise ValueError(f"--agent-config is supported for qcfql and hilserl agents, not "
-                         f"{method.agent!r}")
-    if method.agent == "qcfql":
-        from baselines.qcfql import QCFQLAgent, QCFQLConfig
-
-        cfg = _with_overrides(QCFQLConfig(h=method.h, hidden=tuple(profile.hidden),
-                                          batch_size=profile.batch_size), overrides)
-        return QCFQLAgent(obs_dim, 7, cfg, seed=seed, obs_mean=obs_mean, obs_std=obs_std)
-    if method.agent == "act":
-        from baselines.act import ACT_PROFILES, ACTAgent
-
-        return ACTAgent(obs_dim, 7, ACT_PROFILES[profile.name], seed=seed)
-    if method.agent == "hilserl":
-        from baselines.hilserl import HILSERLAgent, HILSERLConfig
-
-        cfg = _with_overrides(HILSERLConfig(hidden=tuple(profile.hidden),
-                                            batch_size=profile.batch_size), overrides)
-        return HILSERLAgent(obs_dim, 7, cfg, seed=seed, obs_mean=obs_mean, obs_std=obs_std)
-    raise ValueError(f"method {method.name!r}: agent {method.agent!r} is not run by this harness")
-
-
-def _with_overrides(cfg, overrides: dict):
-    import dataclasses
-
-    names = {f.name: f for f in dataclasses.fields(cfg)}
-    for key in overrides:
-        if key not in names:
-            raise ValueError(f"unknown agent config field {key!r}; fields of "
-                             f"{type(cfg).__name__}: {', '.join(names)}")
-    return dataclasses.replace(cfg, **overrides)
+def make_agent(method: Method, profile: Profile, demos: list, seed: int,
+               overrides: dict | None = None) -> Agent:
+    """A fresh learner for ``method`` (its class from the registry) with the profile's sizes;
+    ``overrides`` replace fields of the agent's config (``bench run --agent-config KEY=VALUE``)."""
+    cls = agent_class(method.agent)
+    obs = np.concatenate([ep.observations for ep in demos])
+    mean, std = (None, None) if cls.own_normalizer else obs_normalizer(obs)
+    return cls.create(AgentSpec(obs_dim=int(obs.shape[1]), action_dim=ACTION_DIM, h=method.h,
+                                seed=seed, profile=profile, demos=demos, obs_mean=mean,
+                                obs_std=std, overrides=dict(overrides or {})))
 
 
 def parse_overrides(items: list[str] | None) -> dict:
@@ -112,35 +92,6 @@ def parse_overrides(items: list[str] | None) -> dict:
     return out
 
 
-def agent_from_state(kind: str, state: dict):
-    if kind == "qcfql":
-        from baselines.qcfql import QCFQLAgent
-
-        return QCFQLAgent.from_state_dict(state)
-    if kind == "hilserl":
-        from baselines.hilserl import HILSERLAgent
-
-        return HILSERLAgent.from_state_dict(state)
-    if kind == "act":
-        from baselines.act import ACTAgent
-
-        return ACTAgent.from_state_dict(state)
-    if kind == "sac":
-        from baselines.sac import SACPolicy
-
-        return SACPolicy.from_state_dict(state)
-    raise ValueError(f"unknown agent kind {kind!r}")
-
-
-def agent_hyperparameters(agent) -> dict:
-    cfg = getattr(agent, "config", None)
-    if cfg is None:
-        return {}
-    import dataclasses
-
-    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(cfg).items()}
-
-
 def obs_normalizer(obs: np.ndarray, floor: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
     """Mean and std of the demonstrations' observations, for the agents' fixed z-scoring.
 
@@ -154,38 +105,15 @@ def obs_normalizer(obs: np.ndarray, floor: float = 1e-3) -> tuple[np.ndarray, np
     return mean.astype(np.float32), std.astype(np.float32)
 
 
-class _EpisodeRecorder(gym.Wrapper):
-    """Appends ``{steps, success, takeover_steps, takeovers}`` to ``rows`` at each episode
-    end (for learners that own their loop, like SB3)."""
-
-    def __init__(self, env):
-        super().__init__(env)
-        self.rows: list[dict] = []
-        self._steps = 0
-
-    def reset(self, **kwargs):
-        self._steps = 0
-        return self.env.reset(**kwargs)
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        self._steps += 1
-        if terminated or truncated:
-            self.rows.append({"steps": self._steps, "success": bool(info.get("is_success", terminated)),
-                              "takeover_steps": 0, "takeovers": 0})
-        return obs, reward, terminated, truncated, info
-
-
 class AgentPolicy:
     """Adapts an agent (``act(obs, deterministic)`` -> (h, 7)) to the rollout's policy API."""
 
     def __init__(self, agent, deterministic: bool):
         self.agent, self.deterministic = agent, deterministic
-        self.h = int(getattr(agent, "h", None) or agent.config.h)
+        self.h = int(agent.h)
 
     def reset(self, seed=None):
-        if hasattr(self.agent, "reset"):   # e.g. ACT's temporal-ensembling buffer
-            self.agent.reset()
+        self.agent.reset()   # e.g. ACT's temporal-ensembling history
 
     def act(self, obs):
         return self.agent.act(obs, deterministic=self.deterministic)
@@ -193,11 +121,11 @@ class AgentPolicy:
 
 # ---------------------------------------------------------------------------- evaluation
 def _eval_worker(task) -> list[dict]:
-    kind, state, env_id, seeds, max_steps = task
+    agent_cls, policy_state, env_id, seeds, max_steps = task
     torch.set_num_threads(1)
     import window_bench  # noqa: F401  (registers the envs in a spawned worker)
 
-    agent = agent_from_state(kind, state)
+    agent = agent_cls.from_policy_state_dict(policy_state)
     env = gym.make(env_id, obs_mode="flat", max_episode_steps=max_steps)
     rollout = Rollout(env, AgentPolicy(agent, deterministic=True), env_id=env_id)
     rows = []
@@ -265,10 +193,11 @@ class Evaluator:
         self.workers = max(1, min(workers, episodes))
         self.pool = None
 
-    def __call__(self, kind: str, state: dict) -> list[dict]:
+    def __call__(self, agent_cls: type, policy_state: dict) -> list[dict]:
+        """Rows of the M evaluation rollouts of ``agent_cls.from_policy_state_dict(policy_state)``."""
         seeds = list(range(EVAL_SEED0, EVAL_SEED0 + self.episodes))
         groups = [seeds[j::self.workers] for j in range(self.workers)]
-        tasks = [(kind, state, self.env_id, g, self.max_steps) for g in groups if g]
+        tasks = [(agent_cls, policy_state, self.env_id, g, self.max_steps) for g in groups if g]
         if self.workers == 1:
             out = [_eval_worker(t) for t in tasks]
         else:
@@ -354,6 +283,7 @@ class Run:
                  agent_config: dict | None = None):
         self.method = get_method(method)
         self.profile = get_profile(profile)
+        self.agent_cls = agent_class(self.method.agent)
         import window_bench
 
         if env_id not in window_bench.ENV_IDS:
@@ -399,37 +329,37 @@ class Run:
         return eps[: self.profile.n_demos]
 
     def _fresh(self) -> dict:
-        from window_bench.data.replay import ChunkReplay
-
         torch.manual_seed(self.seed)
         demos = self._demos()
-        obs = np.concatenate([ep.observations for ep in demos])
-        h, p = self.method.h, self.profile
-        agent = make_agent(self.method, p, obs.shape[1], self.seed, *obs_normalizer(obs),
-                           overrides=self.agent_config)
-        if self.method.agent == "act":   # ACT z-scores observations and actions itself
-            agent.fit_normalizer(demos)
-            self.demo_episodes = demos
-        gamma = getattr(agent.config, "gamma", 0.99)   # ACT has no discount (no TD learning)
-        demo_chunks = sum(-(-ep.T // h) for ep in demos)
-        if self.method.agent == "hilserl":   # takeover transitions are added to D_demo too
-            demo_chunks += p.budget_steps
-        demo_rb = ChunkReplay(demo_chunks, h, gamma, seed=self.seed)
-        for ep in demos:
-            demo_rb.add_episode(ep)
-        online_rb = ChunkReplay(p.budget_steps // h + 2 * p.max_episode_steps, h, gamma,
-                                seed=self.seed + 1)
-        self.agent, self.demo_rb, self.online_rb = agent, demo_rb, online_rb
+        self.agent = make_agent(self.method, self.profile, demos, self.seed, self.agent_config)
+        self.agent.attach_demos(demos)
+        self._make_replays(demos)
         return {"stage": "offline", "offline_done": 0, "env_steps": 0, "episodes": [],
                 "checkpoints": [], "grad_steps": 0, "update_credit": 0.0, "wall_clock_s": 0.0,
-                "next_checkpoint": 0, "obs_dim": int(obs.shape[1]),
+                "next_checkpoint": 0, "obs_dim": int(demos[0].observations.shape[1]),
                 "provenance_start": provenance()}
+
+    def _make_replays(self, demos) -> None:
+        """D_demo (with room for the takeover segments of agents that add them) and D_online,
+        as chunk replays on the method's grid."""
+        from window_bench.data.replay import ChunkReplay
+
+        h, p, gamma = self.method.h, self.profile, self.agent.gamma
+        demo_chunks = sum(-(-ep.T // h) for ep in demos)
+        if self.agent.takeovers_to_demo:
+            demo_chunks += p.budget_steps
+        self.demo_rb = ChunkReplay(demo_chunks, h, gamma, seed=self.seed)
+        for ep in demos:
+            self.demo_rb.add_episode(ep)
+        self.online_rb = ChunkReplay(p.budget_steps // h + 2 * p.max_episode_steps, h, gamma,
+                                     seed=self.seed + 1)
 
     def _save(self) -> None:
         _atomic_torch_save({"counters": self.c, "agent": self.agent.state_dict(),
                             "demo_rb": self.demo_rb.state_dict(),
                             "online_rb": self.online_rb.state_dict(),
                             "torch_rng": torch.get_rng_state(),
+                            "numpy_rng": np.random.get_state(legacy=False),
                             "method": self.method.name, "env_id": self.env_id,
                             "profile": self.profile.name, "seed": self.seed,
                             "operator": self.operator}, self.state_path)
@@ -444,163 +374,84 @@ class Run:
                 raise ValueError(f"--resume: the saved run has {key} = {st[key]!r}, this "
                                  f"command asks for {mine!r}")
         self.c = st["counters"]
-        self.agent = agent_from_state(self.method.agent, st["agent"])
-        if self.method.agent == "act":
-            self.demo_episodes = self._demos()
+        self.agent = self.agent_cls.from_state_dict(st["agent"])
+        self.agent.attach_demos(self._demos())
         self.demo_rb, self.online_rb = (_replay_from_state(st[k]) for k in ("demo_rb", "online_rb"))
+        # After the agent: building one may seed the global RNGs (SB3 does).
         torch.set_rng_state(st["torch_rng"])
+        np.random.set_state(st["numpy_rng"])
 
-    # ------------------------------------------------------------------ stages
-    def _elapsed(self) -> float:
-        return self.c["wall_clock_s"] + (time.perf_counter() - self._t0)
-
-    def _offline_steps(self) -> int:
-        if self.method.agent == "act":   # ACT's own step count (batch 8; docs/act.md)
-            return self.agent.config.offline_steps
-        return self.profile.offline_steps
-
-    def _offline(self, bar) -> None:
-        p = self.profile
-        while self.c["offline_done"] < self._offline_steps():
-            n = self._update(lambda: self.demo_rb.sample(p.batch_size))
-            self.c["offline_done"] += n
-            self.c["grad_steps"] += n
-            bar.update(n)
-            if time.perf_counter() - self._last_save > self.save_every_s:
-                self._checkpoint_state()
-        self.c["stage"] = "evaluate0"
-
-    def _batch(self):
-        from window_bench.data.replay import mixed_batch
-
-        return mixed_batch(self.demo_rb, self.online_rb, self.profile.batch_size, 0.5)
-
-    def _update(self, sample) -> int:
-        """One learner call on batches from ``sample()``; returns its gradient steps. QC-FQL
-        takes one batch per step; HIL-SERL draws a fresh batch per critic step."""
-        if self.method.agent == "hilserl":
-            metrics, n = self.agent.update(sample), self.agent.config.critic_actor_ratio
-        elif self.method.agent == "act":
-            cfg = self.agent.config
-            metrics, n = self.agent.update(self.agent.sample_batch(
-                self.demo_episodes, cfg.batch_size, self.agent.rng)), 1
-        else:
-            metrics, n = self.agent.update(sample()), 1
-        self._log_losses(metrics, n)
-        return n
-
-    def _log_losses(self, metrics: dict, n: int) -> None:
-        """Average the learner's metrics over ``loss_log_every`` calls into TensorBoard
-        (``loss/<name>`` against gradient steps); nothing is kept in the resume state."""
-        self._loss_acc.append(metrics)
-        if len(self._loss_acc) < self.loss_log_every:
-            return
-        if self._tb is not None:
-            step = self.c["grad_steps"] + n
-            for key in self._loss_acc[0]:
-                vals = [m[key] for m in self._loss_acc if isinstance(m.get(key), (int, float))]
-                if vals:
-                    self._tb.add_scalar(f"loss/{key}", float(np.mean(vals)), step)
-        self._loss_acc = []
-
-    def _checkpoint_state(self) -> None:
-        self.c["wall_clock_s"] = self._elapsed()
-        self._t0 = time.perf_counter()
-        self._save()
-
-    def _evaluate(self, evaluator, tb, state: dict | None = None) -> None:
-        step = self.c["env_steps"]
-        state = self.agent.state_dict() if state is None else state
-        rows = evaluator(self.method.agent, state)
-        s = summarize_eval(rows)
-        eps = self.c["episodes"]
-        recent = eps[-RATE_WINDOW:]
-        take_steps = sum(e["takeover_steps"] for e in recent)
-        cp = {"env_steps": step, "sim_hours": step / STEPS_PER_HOUR,
-              "wall_clock_s": round(self._elapsed(), 1), **s,
-              "takeover_minutes": sum(e["takeover_steps"] for e in eps) * STEP_DT / 60,
-              "train_episodes": len(eps),
-              "train_success_rate": (np.mean([e["success"] for e in recent]) if recent else None),
-              "train_intervention_rate": (take_steps / sum(e["steps"] for e in recent)
-                                          if recent else None),
-              "grad_steps": self.c["grad_steps"]}
-        cp = {k: (float(v) if isinstance(v, np.floating) else v) for k, v in cp.items()}
-        self.c["checkpoints"].append(cp)
-        pol_dir = self.out / "policies"
-        pol_dir.mkdir(exist_ok=True)
-        _atomic_torch_save({"agent_kind": self.method.agent, "agent": state,
-                            "method": self.method.name, "env_id": self.env_id, "env_steps": step,
-                            "profile": self.profile.name, "seed": self.seed},
-                           pol_dir / f"step_{step:07d}.pt")
-        if tb is not None:
-            for key in ("success_rate", "takeover_minutes", "train_intervention_rate",
-                        "train_success_rate", "wall_clock_s"):
-                if cp.get(key) is not None:
-                    tb.add_scalar(f"eval/{key}" if key == "success_rate" else f"train/{key}",
-                                  cp[key], step)
-            tb.flush()
-
-    def _train_episode_row(self, log) -> dict:
-        from window_bench.data.effort import takeover_count
-
-        return {"steps": log.T, "success": bool(log.terminated[-1]),
-                "takeover_steps": int((log.provenance == "takeover").sum()),
-                "takeovers": takeover_count(log)}
-
-    # ------------------------------------------------------------------ main loop
+    # ------------------------------------------------------------------ the run, top to bottom
     def train(self) -> dict:
-        from tqdm import tqdm
-
-        from window_bench.installer.supervisor import InstallerSupervisor
-
+        """Stage I, the first checkpoint, Stages II-III; a resumed run skips what is done."""
         torch.set_num_threads(1)
         self._t0 = self._last_save = time.perf_counter()
-        if self.method.agent == "sac":
-            return self._train_sac()
         if self.state_path.exists():
             self._load()
         else:
             self.c = self._fresh()
             self._save()
-        m, p = self.method, self.profile
-        tb = self._tb = self._tensorboard()
-        evaluator = Evaluator(self.env_id, p.eval_episodes, p.eval_workers, p.max_episode_steps)
+        p = self.profile
+        self._tb = self._tensorboard()
+        self._evaluator = Evaluator(self.env_id, p.eval_episodes, p.eval_workers,
+                                    p.max_episode_steps)
         try:
             if self.c["stage"] == "offline":
-                if m.offline_pretrain:
-                    with tqdm(total=self._offline_steps(), initial=self.c["offline_done"],
-                              desc="Stage I  offline", unit="upd", disable=not self.progress) as bar:
-                        self._offline(bar)
-                else:
-                    self.c["stage"] = "evaluate0"
-                self._checkpoint_state()
+                self._stage_i_offline_pretraining()
             if self.c["stage"] == "evaluate0":
-                self._evaluate(evaluator, tb)
-                self.c["next_checkpoint"] = p.checkpoint_every
-                self.c["stage"] = "warm" if m.warm_start else "online"
-                if not m.warm_start and not m.online_updates:
-                    self.c["stage"] = "done"
-                self._checkpoint_state()
+                self._first_checkpoint()
             if self.c["stage"] in ("warm", "online"):
-                self._interact(evaluator, tb, InstallerSupervisor)
+                self._stages_ii_iii_interaction()
         finally:
-            evaluator.close()
-            if tb is not None:
-                tb.close()
+            self._evaluator.close()
+            if self._tb is not None:
+                self._tb.close()
         return self._finish()
 
-    def _interact(self, evaluator, tb, supervisor_cls) -> None:
+    def _stage_i_offline_pretraining(self) -> None:
+        """``offline_steps`` learner calls on D_demo batches (none without Stage I)."""
         from tqdm import tqdm
 
-        m, p = self.method, self.profile
-        from window_bench.envs.wrappers import make_training_env
+        p = self.profile
+        if self.method.offline_pretrain:
+            with tqdm(total=self._offline_steps(), initial=self.c["offline_done"],
+                      desc="Stage I  offline", unit="upd", disable=not self.progress) as bar:
+                while self.c["offline_done"] < self._offline_steps():
+                    n = self._learn(lambda: self.demo_rb.sample(p.batch_size))
+                    self.c["offline_done"] += n
+                    self.c["grad_steps"] += n
+                    bar.update(n)
+                    if time.perf_counter() - self._last_save > self.save_every_s:
+                        self._checkpoint_state()
+        self.c["stage"] = "evaluate0"
+        self._checkpoint_state()
 
+    def _first_checkpoint(self) -> None:
+        """The pretrained (or initial) policy's checkpoint at 0 environment steps."""
+        m = self.method
+        self._evaluate()
+        self.c["next_checkpoint"] = self.profile.checkpoint_every
+        self.c["stage"] = "warm" if m.warm_start else "online"
+        if not m.warm_start and not m.online_updates:
+            self.c["stage"] = "done"
+        self._checkpoint_state()
+
+    def _stages_ii_iii_interaction(self) -> None:
+        """The warm start (no updates, no takeovers), then online fine-tuning: UTD learner
+        calls per environment step on 1:1 batches, takeovers when the method has them, a
+        checkpoint every ``checkpoint_every`` steps, until the budget is spent."""
+        from tqdm import tqdm
+
+        from window_bench.envs.wrappers import make_training_env
+        from window_bench.installer.supervisor import InstallerSupervisor
+
+        m, p = self.method, self.profile
         # Training may see a noisy acceptance sensor; evaluation always uses true acceptance.
         env = make_training_env(self.env_id, self.acceptance_noise, obs_mode="flat",
                                 max_episode_steps=p.max_episode_steps)
         policy = AgentPolicy(self.agent, deterministic=False)
         budget = p.warm_steps if not m.online_updates else p.budget_steps
-        sup = supervisor_cls(self.operator) if m.interventions else None
+        sup = InstallerSupervisor(self.operator) if m.interventions else None
         with tqdm(total=budget, initial=self.c["env_steps"], desc="Stage II/III env", unit="step",
                   disable=not self.progress) as bar:
             while self.c["env_steps"] < budget:
@@ -620,11 +471,11 @@ class Run:
                     if not warm and m.online_updates:
                         self.c["update_credit"] += p.utd
                         while self.c["update_credit"] >= 1.0:
-                            n = self._update(self._batch)
+                            n = self._learn(self._batch)
                             self.c["update_credit"] -= n
                             self.c["grad_steps"] += n
                     if self.c["env_steps"] >= self.c["next_checkpoint"]:
-                        self._evaluate(evaluator, tb)
+                        self._evaluate()
                         self.c["next_checkpoint"] += p.checkpoint_every
                         last = self.c["checkpoints"][-1]
                         bar.set_postfix(success=f"{100 * last['success_rate']:.0f}%",
@@ -632,90 +483,106 @@ class Run:
                     if self.c["env_steps"] >= budget:
                         break
                 if rollout.done:
-                    log = rollout.episode_log()
-                    self.online_rb.add_episode(log)
-                    if m.agent == "hilserl":   # as HIL-SERL: interventions also go to D_demo
-                        from baselines.hilserl import takeover_segments
-
-                        for seg in takeover_segments(log):
-                            self.demo_rb.add_episode(seg)
-                    row = self._train_episode_row(log)
-                    row["success"] = bool(rollout.info.get("is_success", row["success"]))
-                    self.c["episodes"].append(row)
+                    self._store_episode(rollout)
                 if time.perf_counter() - self._last_save > self.save_every_s or not rollout.done:
                     self._checkpoint_state()
         env.close()
         if self.c["checkpoints"][-1]["env_steps"] != self.c["env_steps"]:
-            self._evaluate(evaluator, tb)
+            self._evaluate()
         self.c["stage"] = "done"
         self._checkpoint_state()
 
-    # ------------------------------------------------------------------ SB3 SAC
-    def _train_sac(self) -> dict:
-        """SAC as is: SB3 owns the loop; the harness evaluates at its checkpoints."""
-        from baselines.sac import SACPolicy, load_sac, make_sac, save_sac, train_sac
+    # ------------------------------------------------------------------ the steps of a stage
+    def _elapsed(self) -> float:
+        return self.c["wall_clock_s"] + (time.perf_counter() - self._t0)
 
-        from window_bench.envs.wrappers import make_training_env
+    def _offline_steps(self) -> int:
+        own = self.agent.offline_steps   # e.g. ACT's own count (batch 8; docs/act.md)
+        return self.profile.offline_steps if own is None else own
 
-        m, p = self.method, self.profile
-        env = _EpisodeRecorder(make_training_env(self.env_id, self.acceptance_noise,
-                                                 obs_mode="flat",
-                                                 max_episode_steps=p.max_episode_steps))
-        sac_dir = self.out / "sac"
-        if self.state_path.exists():
-            st = torch.load(self.state_path, weights_only=False)
-            if (st["method"], st["seed"], st["env_id"]) != (m.name, self.seed, self.env_id):
-                raise ValueError(f"--resume: {self.out} holds {st['method']} seed {st['seed']} "
-                                 f"on {st['env_id']}")
-            self.c = st["counters"]
-            model = load_sac(sac_dir, env) if self.c["env_steps"] else None
+    def _batch(self):
+        from window_bench.data.replay import mixed_batch
+
+        return mixed_batch(self.demo_rb, self.online_rb, self.profile.batch_size, 0.5)
+
+    def _learn(self, sample) -> int:
+        """One learner call on batches from ``sample()``; returns its gradient steps."""
+        metrics, n = self.agent.learn(sample)
+        self._log_losses(metrics, n)
+        return n
+
+    def _log_losses(self, metrics: dict, n: int) -> None:
+        """Average the learner's metrics over ``loss_log_every`` calls into TensorBoard
+        (``loss/<name>`` against gradient steps); nothing is kept in the resume state."""
+        self._loss_acc.append(metrics)
+        if len(self._loss_acc) < self.loss_log_every:
+            return
+        if self._tb is not None:
+            step = self.c["grad_steps"] + n
+            for key in self._loss_acc[0]:
+                vals = [m[key] for m in self._loss_acc if isinstance(m.get(key), (int, float))]
+                if vals:
+                    self._tb.add_scalar(f"loss/{key}", float(np.mean(vals)), step)
+        self._loss_acc = []
+
+    def _store_episode(self, rollout) -> None:
+        """A finished training episode: into the agent's own replay or D_online (and its
+        takeover segments into D_demo for agents that learn from them as demonstrations),
+        and into the training-episode rows."""
+        from window_bench.data.effort import takeover_count
+
+        log = rollout.episode_log()
+        if self.agent.own_replay:
+            self.agent.add_episode(log)
         else:
-            self.c = {"stage": "online", "env_steps": 0, "episodes": [], "checkpoints": [],
-                      "grad_steps": 0, "wall_clock_s": 0.0, "provenance_start": provenance()}
-            model = None
-        if model is None:
-            model = make_sac(env, self._demos(), self.seed, p.budget_steps)
-        env.rows = self.c["episodes"]
-        self.agent = SACPolicy(model)
-        evaluator = Evaluator(self.env_id, p.eval_episodes, p.eval_workers, p.max_episode_steps)
-        tb = self._tensorboard()
+            self.online_rb.add_episode(log)
+        if self.agent.takeovers_to_demo:
+            from baselines.hilserl import takeover_segments
 
-        def save_counters():
-            self.c["wall_clock_s"] = self._elapsed()
-            self._t0 = time.perf_counter()
-            _atomic_torch_save({"counters": self.c, "method": m.name, "env_id": self.env_id,
-                                "profile": p.name, "seed": self.seed,
-                                "operator": self.operator}, self.state_path)
+            for seg in takeover_segments(log):
+                self.demo_rb.add_episode(seg)
+        self.c["episodes"].append({
+            "steps": log.T, "success": bool(rollout.info.get("is_success", log.terminated[-1])),
+            "takeover_steps": int((log.provenance == "takeover").sum()),
+            "takeovers": takeover_count(log)})
 
-        def on_checkpoint(k: int) -> None:
-            self.c["env_steps"] = k
-            self.c["grad_steps"] = int(model._n_updates)
-            self._evaluate(evaluator, tb, state=SACPolicy(model).state_dict())
-            save_sac(model, sac_dir)
-            save_counters()
+    def _checkpoint_state(self) -> None:
+        self.c["wall_clock_s"] = self._elapsed()
+        self._t0 = time.perf_counter()
+        self._save()
 
-        try:
-            if not self.c["checkpoints"]:
-                self._evaluate(evaluator, tb, state=SACPolicy(model).state_dict())
-                save_counters()
-            elif self.c["checkpoints"][-1]["env_steps"] != model.num_timesteps:
-                on_checkpoint(int(model.num_timesteps))   # killed between the two saves
-            train_sac(model, p.budget_steps, p.checkpoint_every, on_checkpoint,
-                      progress=self.progress)
-            if self.c["checkpoints"][-1]["env_steps"] != model.num_timesteps:
-                on_checkpoint(int(model.num_timesteps))
-            self.c["stage"] = "done"
-            save_counters()
-        finally:
-            evaluator.close()
-            if tb is not None:
-                tb.close()
-        from baselines.sac import SB3_SAC_DEFAULTS
-
-        self.hyperparameters = {**SB3_SAC_DEFAULTS, "buffer_size": int(model.buffer_size),
-                                "seed": self.seed,
-                                "demo_transitions": int(getattr(model, "n_demo_transitions", 0))}
-        return self._finish()
+    def _evaluate(self) -> None:
+        """Evaluate the frozen acting policy (M rollouts, interventions off), record the
+        checkpoint row and write the policy file."""
+        step, tb = self.c["env_steps"], self._tb
+        state = self.agent.policy_state_dict()
+        s = summarize_eval(self._evaluator(self.agent_cls, state))
+        eps = self.c["episodes"]
+        recent = eps[-RATE_WINDOW:]
+        take_steps = sum(e["takeover_steps"] for e in recent)
+        cp = {"env_steps": step, "sim_hours": step / STEPS_PER_HOUR,
+              "wall_clock_s": round(self._elapsed(), 1), **s,
+              "takeover_minutes": sum(e["takeover_steps"] for e in eps) * STEP_DT / 60,
+              "train_episodes": len(eps),
+              "train_success_rate": (np.mean([e["success"] for e in recent]) if recent else None),
+              "train_intervention_rate": (take_steps / sum(e["steps"] for e in recent)
+                                          if recent else None),
+              "grad_steps": self.c["grad_steps"]}
+        cp = {k: (float(v) if isinstance(v, np.floating) else v) for k, v in cp.items()}
+        self.c["checkpoints"].append(cp)
+        pol_dir = self.out / "policies"
+        pol_dir.mkdir(exist_ok=True)
+        _atomic_torch_save({"agent_kind": self.method.agent, "policy": state,
+                            "method": self.method.name, "env_id": self.env_id, "env_steps": step,
+                            "profile": self.profile.name, "seed": self.seed},
+                           pol_dir / f"step_{step:07d}.pt")
+        if tb is not None:
+            for key in ("success_rate", "takeover_minutes", "train_intervention_rate",
+                        "train_success_rate", "wall_clock_s"):
+                if cp.get(key) is not None:
+                    tb.add_scalar(f"eval/{key}" if key == "success_rate" else f"train/{key}",
+                                  cp[key], step)
+            tb.flush()
 
     def _tensorboard(self):
         try:
@@ -736,8 +603,7 @@ class Run:
             "env_id": self.env_id, "profile": self.profile.as_dict(), "seed": self.seed,
             "operator": self.operator, "acceptance_noise": self.acceptance_noise,
             "agent_config_overrides": self.agent_config,
-            "hyperparameters": getattr(self, "hyperparameters", None)
-            or agent_hyperparameters(self.agent),
+            "hyperparameters": self.agent.hyperparameters(),
             "final": {"success_rate": final["success_rate"], "wilson95": final["wilson95"],
                       "episodes": final["episodes"], "cycle_time_s": final["cycle_time_s"],
                       "time_to_95_env_steps": t95,
@@ -769,7 +635,7 @@ def evaluate_policy_file(path: str | os.PathLike, episodes: int, workers: int = 
     env_id = env_id or st["env_id"]
     ev = Evaluator(env_id, episodes, workers, 600)
     try:
-        rows = ev(st["agent_kind"], st["agent"])
+        rows = ev(agent_class(st["agent_kind"]), st["policy"])
     finally:
         ev.close()
     return {"policy": str(path), "method": st["method"], "env_id": env_id,
