@@ -236,3 +236,8 @@ def test_bench_video_writes_an_mp4_per_episode(tmp_path, capsys):
     assert frames[0].shape == (64, 160, 3)
     assert main(["video", "--size", "10", "--out", str(tmp_path)]) == 2
     assert "size 10 px is outside [64, 480]" in capsys.readouterr().err
+    # A file that is not a policy file (read without unpickling): one line, exit 2.
+    assert main(["video", "--policy", str(tmp_path / "videos.json"), "--out", str(tmp_path)]) == 2
+    assert "is not a readable policy file" in capsys.readouterr().err
+    assert main(["video", "--policy", "magic", "--out", str(tmp_path)]) == 2
+    assert "neither a controller" in capsys.readouterr().err

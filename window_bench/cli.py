@@ -368,7 +368,7 @@ def cmd_video(args) -> int:
     from window_bench.video import check_args, record
 
     try:
-        check_args(args.cameras, args.size, args.fps)
+        check_args(args.cameras, args.size, args.fps, args.policy)
         rows = record(args.env, args.policy, list(range(args.seed, args.seed + args.episodes)),
                       args.out, cameras=args.cameras, size=args.size, fps=args.fps)
     except ValueError as e:

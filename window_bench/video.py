@@ -26,8 +26,13 @@ SIZE_RANGE = (64, 480)   # frame height in px; the scene's offscreen buffer is 6
 FPS_RANGE = (1, 60)
 
 
-def check_args(cameras: list[str], size: int, fps: int) -> None:
+def check_args(cameras: list[str], size: int, fps: int, policy: str = "installer") -> None:
     """One-line errors for bad arguments, before anything is built."""
+    from window_bench.installer.scripted import CONTROLLERS
+
+    if policy not in CONTROLLERS and not Path(policy).is_file():
+        raise ValueError(f"policy {policy!r} is neither a controller ({', '.join(CONTROLLERS)}) "
+                         "nor a policy file")
     bad = [c for c in cameras if c not in CAMERAS]
     if not cameras or bad:
         raise ValueError(f"cameras {bad or cameras!r}: choose one or more of {', '.join(CAMERAS)}")
@@ -87,9 +92,6 @@ def make_policy(policy: str, env: gym.Env, seed: int):
     if policy in CONTROLLERS:
         return CONTROLLERS[policy](env, seed=seed)
     path = Path(policy)
-    if not path.is_file():
-        raise ValueError(f"policy {policy!r} is neither a controller ({', '.join(CONTROLLERS)}) "
-                         "nor a policy file")
     import torch
 
     from window_bench.harness.methods import agent_class
@@ -107,7 +109,7 @@ def record(env_id: str, policy: str, seeds: list[int], out: str | os.PathLike,
            cameras: list[str] = list(CAMERAS), size: int = 240, fps: int = 10,
            progress: bool = True) -> list[dict]:
     """Record one MP4 per seed under ``out``; returns the rows written to ``videos.json``."""
-    check_args(cameras, size, fps)
+    check_args(cameras, size, fps, policy)
     try:
         import imageio.v2 as imageio
         import imageio_ffmpeg  # noqa: F401  (the MP4 writer imageio needs)
