@@ -330,8 +330,12 @@ def test_pixel_demos_replay_the_state_demos_exactly(backbone):
         pixel_demos([tampered], ENV, backbone)
     with pytest.raises(ValueError, match="allowed: state, pixels"):
         check_track("rgb")
-    with pytest.raises(ValueError, match="needs the frozen backbone"):
-        make_track_env(ENV, "pixels")
+    from window_bench.pixels.track import track_agent_kind
+
+    assert track_agent_kind("qcfql", "pixels") == "qcfql-pixels"
+    assert track_agent_kind("hilserl", "state") == "hilserl"
+    with pytest.raises(ValueError, match="not available for the 'hilserl' agent"):
+        track_agent_kind("hilserl", "pixels")
     assert isinstance(make_track_env(ENV, "state").observation_space, gym.spaces.Box)
 
 

@@ -28,7 +28,12 @@ from window_bench.pixels.encoder import OBS_DIM, PROPRIO_DIM, PixelObsEncoder
 class PixelQCFQL(Agent):
     """The harness's :class:`~window_bench.harness.agent.Agent` interface, as
     :class:`baselines.qcfql.QCFQLAgent`, on flat pixel observations (``OBS_DIM`` values).
-    ``proprio_mean``/``proprio_std``: the fixed proprioception normaliser (18 values each)."""
+    ``proprio_mean``/``proprio_std``: the fixed proprioception normaliser (18 values each).
+    ``encoder_weights``: the backbone's weights file (``None``: the shipped default), kept in
+    the saved states so that an evaluation worker builds the same observation."""
+
+    track = "pixels"
+    encoder_weights: str | None = None
 
     def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None):
         from baselines.qcfql import QCFQLAgent, QCFQLConfig
@@ -112,12 +117,14 @@ class PixelQCFQL(Agent):
 
     # ------------------------------------------------------------------ state (plain data)
     def state_dict(self) -> dict:
-        return {"agent": self.agent.state_dict(), "encoder": module_state(self.encoder),
+        return {**self.policy_state_dict(),
+                "agent": self.agent.state_dict(),
                 "encoder_optimizer": optimizer_state(self.encoder_optimizer)}
 
     def load_state_dict(self, sd: dict) -> None:
         self.agent.load_state_dict(sd["agent"])
         self.encoder.load_state_dict(sd["encoder"])
+        self.encoder_weights = sd.get("encoder_weights")
         load_optimizer_state(self.encoder_optimizer, sd["encoder_optimizer"])
 
     @classmethod
@@ -129,7 +136,8 @@ class PixelQCFQL(Agent):
         return out
 
     def policy_state_dict(self) -> dict:
-        return {"agent": self.agent.policy_state_dict(), "encoder": module_state(self.encoder)}
+        return {"agent": self.agent.policy_state_dict(), "encoder": module_state(self.encoder),
+                "encoder_weights": self.encoder_weights}
 
     @classmethod
     def from_policy_state_dict(cls, sd: dict) -> "PixelQCFQL":
@@ -138,4 +146,5 @@ class PixelQCFQL(Agent):
         out = cls(_config_from(sd["agent"]["config"]), seed=sd["agent"]["seed"])
         out.agent = QCFQLAgent.from_policy_state_dict(sd["agent"])
         out.encoder.load_state_dict(sd["encoder"])
+        out.encoder_weights = sd.get("encoder_weights")
         return out

@@ -18,6 +18,8 @@ from window_bench.pixels.encoder import PROPRIO_DIM
 
 TRACKS = ("state", "pixels")
 TRACK_LABELS = {"state": "privileged state", "pixels": "pixels (2 x RGB 128² + proprioception)"}
+#: Agent kind on the state track -> its kind on the pixel track (harness/methods.py AGENTS).
+PIXEL_KINDS = {"qcfql": "qcfql-pixels"}
 
 
 def check_track(track: str) -> str:
@@ -26,14 +28,30 @@ def check_track(track: str) -> str:
     return track
 
 
-def make_track_env(env_id: str, track: str, backbone=None, **kwargs) -> gym.Env:
+def track_agent_kind(kind: str, track: str) -> str:
+    """The agent kind that runs ``kind``'s method on ``track``; ``ValueError`` for an agent
+    that has no pixel front end yet."""
+    if check_track(track) == "state":
+        return kind
+    if kind not in PIXEL_KINDS:
+        raise ValueError(f"track='pixels' is not available for the {kind!r} agent yet; "
+                         f"pixel agents: {', '.join(PIXEL_KINDS)}")
+    return PIXEL_KINDS[kind]
+
+
+def make_track_env(env_id: str, track: str, backbone=None, *, weights=None,
+                   **kwargs) -> gym.Env:
     """``gym.make(env_id, obs_mode="flat", **kwargs)`` for ``state``; the env wrapped in
-    :class:`PixelFeatures` with ``backbone`` for ``pixels``."""
+    :class:`PixelFeatures` for ``pixels``, with ``backbone`` or else the one
+    ``resolve_backbone(weights)`` gives (``None``: the shipped default)."""
     if check_track(track) == "state":
         return gym.make(env_id, obs_mode="flat", **kwargs)
-    if backbone is None:
-        raise ValueError("track='pixels' needs the frozen backbone (resolve_backbone)")
     from window_bench.pixels.features import make_pixel_env
+
+    if backbone is None:
+        from window_bench.pixels.weights import resolve_backbone
+
+        backbone, _ = resolve_backbone(weights)
 
     return make_pixel_env(env_id, backbone, **kwargs)
 
