@@ -56,7 +56,7 @@ from torch import nn
 from torchrl.modules import MLP
 
 from window_bench.data.steplog import PROVENANCES, EpisodeLog
-from window_bench.harness.agent import (Agent, AgentSpec, config_from_plain, load_optimizer_state,
+from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
                                         module_state, optimizer_state, plain, with_overrides)
 from window_bench.envs.env import VACUUM_THRESHOLD
 
@@ -431,16 +431,6 @@ class HILSERLAgent(Agent):
     def make_config(cls, h: int, profile, overrides: dict) -> HILSERLConfig:
         return with_overrides(HILSERLConfig(hidden=tuple(profile.hidden),
                                             batch_size=profile.batch_size), overrides)
-
-    @classmethod
-    def create(cls, spec: AgentSpec) -> "HILSERLAgent":
-        cfg = cls.make_config(spec.h, spec.profile, spec.overrides)
-        return cls(spec.obs_dim, spec.action_dim, cfg, seed=spec.seed, obs_mean=spec.obs_mean,
-                   obs_std=spec.obs_std)
-
-    @property
-    def gamma(self) -> float:
-        return self.config.gamma
 
     def learn(self, sample) -> tuple[dict[str, float], int]:
         """One :meth:`update`: ``critic_actor_ratio`` critic steps, each on a fresh batch."""

@@ -47,7 +47,7 @@ from torchrl.modules import MLP
 
 from window_bench.envs.env import VACUUM_THRESHOLD
 from window_bench.data.replay import PROVENANCE_CODES
-from window_bench.harness.agent import (Agent, AgentSpec, config_from_plain, load_optimizer_state,
+from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
                                         module_state, optimizer_state, plain, with_overrides)
 
 #: Bound on normalised observations (in demo standard deviations).
@@ -360,6 +360,8 @@ class QCFQLAgent(Agent):
         normally computed by the harness from the demonstrations. Default: identity.
     """
 
+    follows_method_h = True   # h is the method's (Table 1) or the run's (Tables 5/6)
+
     def __init__(self, obs_dim: int, action_dim: int = 7, config: QCFQLConfig | None = None,
                  seed: int = 0, obs_mean: np.ndarray | None = None,
                  obs_std: np.ndarray | None = None):
@@ -416,19 +418,9 @@ class QCFQLAgent(Agent):
         return with_overrides(QCFQLConfig(h=h, hidden=tuple(profile.hidden),
                                           batch_size=profile.batch_size), overrides)
 
-    @classmethod
-    def create(cls, spec: AgentSpec) -> "QCFQLAgent":
-        cfg = cls.make_config(spec.h, spec.profile, spec.overrides)
-        return cls(spec.obs_dim, spec.action_dim, cfg, seed=spec.seed, obs_mean=spec.obs_mean,
-                   obs_std=spec.obs_std)
-
     @property
     def h(self) -> int:
         return self.config.h
-
-    @property
-    def gamma(self) -> float:
-        return self.config.gamma
 
     def learn(self, sample) -> tuple[dict[str, float], int]:
         """One :meth:`update` on one batch."""

@@ -57,3 +57,14 @@ def drive_tcp(env, target_pos, g=0.0, max_steps=40, tol=5e-4):
         out = env.step(tcp_action(env, target_pos, g))
         assert not (out[2] or out[3]), f"episode ended while driving the TCP: {out[4]}"
     return out
+
+
+@pytest.fixture(scope="session")
+def demos_root(tmp_path_factory):
+    """Two ``average``-operator demonstrations on WindowInstall-A-v0 (the smoke profile's
+    D_demo), collected once for every test module that runs the harness."""
+    from window_bench.installer.demos import collect_demos
+
+    root = tmp_path_factory.mktemp("demos")
+    collect_demos("WindowInstall-A-v0", 2, root, operator="average", seed=0, progress=False)
+    return root

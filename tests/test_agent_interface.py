@@ -19,7 +19,7 @@ from window_bench.harness.agent import (Agent, AgentSpec, check_plain, load_opti
                                         module_state, optimizer_state)
 from window_bench.harness.methods import AGENTS, METHODS, PROFILES, Method, get_method
 from window_bench.harness.run import make_agent
-from window_bench.installer.demos import collect_demos, load_demos
+from window_bench.installer.demos import load_demos
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
@@ -82,13 +82,6 @@ class ToyBC(Agent):
         agent = cls.from_policy_state_dict(state)
         agent.load_state_dict(state)
         return agent
-
-
-@pytest.fixture(scope="module")
-def demos_root(tmp_path_factory):
-    root = tmp_path_factory.mktemp("demos")
-    collect_demos("WindowInstall-A-v0", 2, root, operator="average", seed=0, progress=False)
-    return root
 
 
 def test_a_toy_agent_runs_through_bench_run_with_no_harness_change(tmp_path, demos_root,

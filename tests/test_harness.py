@@ -12,7 +12,6 @@ import torch
 
 from window_bench.cli import main
 from window_bench.data.dataset import load_episodes
-from window_bench.installer.demos import collect_demos
 from window_bench.harness.evaluation import wilson_interval
 from window_bench.harness.run import Run, summarize_eval, time_to_threshold
 from window_bench.harness.methods import METHODS, PROFILES, get_method, methods_table
@@ -112,13 +111,6 @@ def test_cli_rejects_unknown_names(capsys):
 
 
 # ---------------------------------------------------------------- runs
-@pytest.fixture(scope="module")
-def demos_root(tmp_path_factory):
-    root = tmp_path_factory.mktemp("demos")
-    collect_demos("WindowInstall-A-v0", 2, root, operator="average", seed=0, progress=False)
-    return root
-
-
 def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
     out = tmp_path / "run"
     assert main(["run", "--method", "qcfql", "--profile", "smoke", "--seed", "0", "--out",

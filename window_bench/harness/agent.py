@@ -56,8 +56,6 @@ class Agent(ABC):
 
     #: Actions per :meth:`act` call (the chunk horizon).
     h: int = 1
-    #: Per-step discount of the harness's chunk replay (ignored with ``own_replay``).
-    gamma: float = 0.99
     #: Takeover transitions also go to D_demo (HIL-SERL), not only to D_online.
     takeovers_to_demo: bool = False
     #: The agent keeps its own replay buffer (SB3 SAC): the harness hands it every finished
@@ -67,6 +65,9 @@ class Agent(ABC):
     own_normalizer: bool = False
     #: Stage I gradient steps if the agent has its own count (ACT); None: the profile's.
     offline_steps: int | None = None
+    #: The agent acts in chunks of the method's ``h`` (``AgentSpec.h``), so a run may set
+    #: another one (QC-FQL, Tables 5/6); the others have a fixed horizon.
+    follows_method_h: bool = False
 
     # ------------------------------------------------------------------ building
     @classmethod
@@ -79,9 +80,19 @@ class Agent(ABC):
         return None
 
     @classmethod
-    @abstractmethod
     def create(cls, spec: AgentSpec) -> "Agent":
-        """A fresh agent for a run (weights seeded by ``spec.seed``)."""
+        """A fresh agent for a run (weights seeded by ``spec.seed``). This default builds
+        ``cls(obs_dim, action_dim, make_config(...), seed=, obs_mean=, obs_std=)``; agents
+        constructed otherwise override it."""
+        return cls(spec.obs_dim, spec.action_dim,
+                   cls.make_config(spec.h, spec.profile, spec.overrides), seed=spec.seed,
+                   obs_mean=spec.obs_mean, obs_std=spec.obs_std)
+
+    @property
+    def gamma(self) -> float:
+        """Per-step discount of the harness's chunk replays (unused with ``own_replay``): the
+        config's ``gamma``, 0.99 for an agent without one (ACT has no TD learning)."""
+        return getattr(getattr(self, "config", None), "gamma", 0.99)
 
     def attach_demos(self, demos: list) -> None:
         """D_demo, for agents that draw their own batches from the episodes; called after

@@ -304,6 +304,8 @@ class Run:
             AcceptanceSensor(**acceptance_noise)     # validates the rates and the delay
         self.acceptance_noise = acceptance_noise
         self.agent_config = dict(agent_config or {})
+        # A bad --agent-config stops the run here, before any demo is collected.
+        self.agent_cls.make_config(self.method.h, self.profile, self.agent_config)
         self.out = Path(out)
         self.demos_root = Path(demos) if demos is not None else self.out / "demos"
         self.progress, self.save_every_s = progress, float(save_every_s)
