@@ -68,6 +68,7 @@ AGENTS: dict[str, str | type] = {
     "hilserl": "baselines.hilserl:HILSERLAgent",
     "act": "baselines.act:ACTAgent",
     "sac": "baselines.sac:SACAgent",
+    "qcfql-pixels": "window_bench.pixels.agent:PixelQCFQL",   # bench run --track pixels
 }
 
 

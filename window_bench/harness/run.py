@@ -126,7 +126,11 @@ def _eval_worker(task) -> list[dict]:
     import window_bench  # noqa: F401  (registers the envs in a spawned worker)
 
     agent = agent_cls.from_policy_state_dict(policy_state)
-    env = gym.make(env_id, obs_mode="flat", max_episode_steps=max_steps)
+    from window_bench.pixels.track import make_track_env
+
+    # The policy's observation track: a pixel agent names its encoder weights in its state.
+    env = make_track_env(env_id, getattr(agent_cls, "track", "state"),
+                         weights=policy_state.get("encoder_weights"), max_episode_steps=max_steps)
     rollout = Rollout(env, AgentPolicy(agent, deterministic=True), env_id=env_id)
     rows = []
     for seed in seeds:
@@ -278,12 +282,14 @@ class Run:
 
     def __init__(self, method: str, env_id: str, profile: str, seed: int, out: str | os.PathLike,
                  *, resume: bool = False, operator: str = "average",
+                 track: str = "state", encoder_weights: str | os.PathLike | None = None,
                  demos: str | os.PathLike | None = None, progress: bool = True,
                  save_every_s: float = 60.0, acceptance_noise: dict | None = None,
                  agent_config: dict | None = None):
         self.method = get_method(method)
         self.profile = get_profile(profile)
         self.agent_cls = agent_class(self.method.agent)
+        self._init_track(track, encoder_weights)
         import window_bench
 
         if env_id not in window_bench.ENV_IDS:
@@ -298,6 +304,8 @@ class Run:
             AcceptanceSensor(**acceptance_noise)     # validates the rates and the delay
         self.acceptance_noise = acceptance_noise
         self.agent_config = dict(agent_config or {})
+        # A bad --agent-config stops the run here, before any demo is collected.
+        self.agent_cls.make_config(self.method.h, self.profile, self.agent_config)
         self.out = Path(out)
         self.demos_root = Path(demos) if demos is not None else self.out / "demos"
         self.progress, self.save_every_s = progress, float(save_every_s)
@@ -311,6 +319,35 @@ class Run:
         self._stop_after_env_steps = None   # tests: simulate a kill (no state written)
         self._tb, self._loss_acc = None, []
         self.loss_log_every = LOSS_LOG_EVERY
+
+    def _init_track(self, track: str, encoder_weights) -> None:
+        """The observation track (docs/pixels.md): ``state`` (the privileged 52-float state)
+        or ``pixels`` (two views through the frozen ResNet-10 + proprioception). The pixel
+        track runs the method's pixel agent kind and resolves the backbone now, so a wrong
+        weights file fails before any work."""
+        import dataclasses
+
+        from window_bench.pixels.track import TRACK_LABELS, check_track, track_agent_kind
+
+        self.track = check_track(track)
+        self.backbone, self.encoder_weights, self._pixel_demos = None, None, None
+        self.encoder = {"track_label": TRACK_LABELS[self.track]}
+        if self.track == "pixels":
+            from window_bench.harness.files import sha256_file
+            from window_bench.pixels.weights import DEFAULT_WEIGHTS, resolve_backbone, weights_record
+
+            kind = track_agent_kind(self.method.agent, self.track)
+            self.method = dataclasses.replace(self.method, agent=kind)
+            self.agent_cls = agent_class(kind)
+            if encoder_weights is not None:
+                encoder_weights = str(Path(encoder_weights).resolve())
+            self.backbone, label = resolve_backbone(encoder_weights)
+            self.encoder_weights = encoder_weights
+            path = DEFAULT_WEIGHTS if encoder_weights is None else Path(encoder_weights)
+            record = weights_record(path)
+            self.encoder.update(weights=label, sha256=sha256_file(path),
+                                **{k: record[k] for k in ("command", "heldout_quality")
+                                   if k in record})
 
     # ------------------------------------------------------------------ setup
     def _demos(self):
@@ -326,12 +363,21 @@ class Run:
         if len(eps) < self.profile.n_demos:
             raise ValueError(f"{self.demos_root}: {len(eps)} demonstrations, the profile needs "
                              f"{self.profile.n_demos}")
-        return eps[: self.profile.n_demos]
+        eps = eps[: self.profile.n_demos]
+        if self.track == "pixels":   # re-observed once per Run: it renders and encodes
+            if self._pixel_demos is None:
+                from window_bench.pixels.track import pixel_demos
+
+                self._pixel_demos = pixel_demos(eps, self.env_id, self.backbone, self.progress)
+            return self._pixel_demos
+        return eps
 
     def _fresh(self) -> dict:
         torch.manual_seed(self.seed)
         demos = self._demos()
         self.agent = make_agent(self.method, self.profile, demos, self.seed, self.agent_config)
+        if self.track == "pixels":
+            self.agent.encoder_weights = self.encoder_weights
         self.agent.attach_demos(demos)
         self._make_replays(demos)
         return {"stage": "offline", "offline_done": 0, "env_steps": 0, "episodes": [],
@@ -362,7 +408,7 @@ class Run:
                             "numpy_rng": np.random.get_state(legacy=False),
                             "method": self.method.name, "env_id": self.env_id,
                             "profile": self.profile.name, "seed": self.seed,
-                            "operator": self.operator}, self.state_path)
+                            "operator": self.operator, "track": self.track}, self.state_path)
         self._last_save = time.perf_counter()
 
     def _load(self) -> None:
@@ -373,6 +419,9 @@ class Run:
             if st[key] != mine:
                 raise ValueError(f"--resume: the saved run has {key} = {st[key]!r}, this "
                                  f"command asks for {mine!r}")
+        if st.get("track", "state") != self.track:
+            raise ValueError(f"--resume: the saved run is on the {st.get('track', 'state')!r} "
+                             f"track, this command asks for {self.track!r}")
         self.c = st["counters"]
         self.agent = self.agent_cls.from_state_dict(st["agent"])
         self.agent.attach_demos(self._demos())
@@ -447,8 +496,13 @@ class Run:
 
         m, p = self.method, self.profile
         # Training may see a noisy acceptance sensor; evaluation always uses true acceptance.
-        env = make_training_env(self.env_id, self.acceptance_noise, obs_mode="flat",
+        env = make_training_env(self.env_id, self.acceptance_noise,
+                                obs_mode="flat" if self.track == "state" else "pixels",
                                 max_episode_steps=p.max_episode_steps)
+        if self.track == "pixels":
+            from window_bench.pixels.features import PixelFeatures
+
+            env = PixelFeatures(env, self.backbone)
         policy = AgentPolicy(self.agent, deterministic=False)
         budget = p.warm_steps if not m.online_updates else p.budget_steps
         sup = InstallerSupervisor(self.operator) if m.interventions else None
@@ -601,6 +655,7 @@ class Run:
         results = {
             "schema_version": RESULTS_SCHEMA, "method": self.method.as_dict(),
             "env_id": self.env_id, "profile": self.profile.as_dict(), "seed": self.seed,
+            "track": self.track, "encoder": self.encoder,
             "operator": self.operator, "acceptance_noise": self.acceptance_noise,
             "agent_config_overrides": self.agent_config,
             "hyperparameters": self.agent.hyperparameters(),
