@@ -273,6 +273,7 @@ def cmd_run(args) -> int:
 
         run = Run(args.method, args.env, args.profile, args.seed, args.out, resume=args.resume,
                   operator=args.operator, demos=args.demos, acceptance_noise=noise,
+                  track=args.track, encoder_weights=args.encoder_weights,
                   agent_config=parse_overrides(args.agent_config))
     except (ValueError, FileExistsError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -468,6 +469,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--acceptance-noise", nargs=3, metavar=("FP", "FN", "DELAY"), default=None,
                    help="train on a noisy acceptance sensor: false-positive rate per step, "
                         "false-negative rate, delay in steps (evaluation keeps true acceptance)")
+    r.add_argument("--track", choices=["state", "pixels"], default="state",
+                   help="observation track: the privileged state, or the paper's two RGB views "
+                        "+ proprioception through the frozen ResNet-10 (docs/pixels.md)")
+    r.add_argument("--encoder-weights", metavar="PATH",
+                   help="pixel track: backbone weights (safetensors, timm resnet10t names); "
+                        "default: the shipped in-domain encoder")
     r.add_argument("--agent-config", nargs="+", metavar="KEY=VALUE",
                    help="override fields of the agent's config (recorded in the results), "
                         "e.g. act_noise_scale=0.0 alpha=100")
