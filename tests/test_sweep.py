@@ -103,3 +103,34 @@ def test_cli_bad_grid_exit_2(tmp_path):
     r = subprocess.run([sys.executable, "-m", "window_bench.cli", "sweep", str(p)],
                        capture_output=True, text=True)
     assert r.returncode == 2 and "Traceback" not in r.stderr and "M = -3" in r.stderr
+
+
+def test_tiny_grid_on_ray_resumes_shares_stage1_and_makes_its_tables(tmp_path):
+    """2 methods x 2 seeds (smoke) through Ray: every cell finished with its final evaluation
+    on the test seeds; the two methods of a seed share one Stage I (the second loads it, and
+    its checkpoint 0 equals the first's); a second sweep skips everything; bench tables
+    makes Table 2 from the raw files."""
+    from window_bench.harness.sweep import Sweep
+    from window_bench.harness.tables import build
+
+    grid = _grid(tmp_path, GRID.replace('["qcfql-offline", "qcfql"]',
+                                        '["qcfql-offline", "qcfql-offline-warmstart"]'))
+    out = tmp_path / "runs"
+    summary = Sweep(grid, out, workers=2, progress=False).run()
+    assert {c["status"] for c in summary["cells"].values()} == {"done"}, summary
+    for seed in (0, 1):
+        a, b = (json.loads((out / "WindowInstall-A-v0" / f"{m}-smoke-s{seed}" / "results.json")
+                           .read_text()) for m in ("qcfql-offline", "qcfql-offline-warmstart"))
+        for r in (a, b):
+            assert (r["final_eval"]["seed_set"], r["final_eval"]["episodes"]) == ("test", 2)
+            assert r["final_eval"]["seeds"] == [500000, 500001]
+            assert len(r["final_eval"]["policy_sha256"]) == 64
+        assert a["stage1"]["key"] == b["stage1"]["key"]
+        assert sorted([a["stage1"]["cache_hit"], b["stage1"]["cache_hit"]]) == [False, True]
+        strip = lambda c: {k: v for k, v in c.items() if k != "wall_clock_s"}  # noqa: E731
+        assert strip(a["checkpoints"][0]) == strip(b["checkpoints"][0])
+    again = Sweep(grid, out, workers=2, progress=False).run()
+    assert all("rc" not in c for c in again["cells"].values())     # nothing ran again
+    t2 = build(out, tmp_path / "docs", figures=False)["table2.md"]
+    rows = [ln for ln in t2.splitlines() if ln.startswith("| Ours (offline")]
+    assert len(rows) == 2 and all("| 2 |" in r and "M = 2" in r for r in rows)

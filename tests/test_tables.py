@@ -115,3 +115,19 @@ def test_committed_results_pages_equal_bench_tables(tmp_path, monkeypatch):
     for name in pages:
         assert (REPO / "docs" / "results" / name).read_bytes() == (tmp_path / name).read_bytes(), \
             f"docs/results/{name} differs from bench tables' output: run bench tables"
+
+
+def test_table7_from_evaluation_cells(tmp_path):
+    """bench eval outputs at <ood env>/<run>.json join their training cell <env>/<run>."""
+    runs = tmp_path / "runs"
+    for seed, k in enumerate([90, 96]):
+        d = _results(runs, "qcfql", "WindowInstall-B-v0", seed, 1.0)
+        ood = runs / "WindowInstall-B-Panel60x60-v0"
+        ood.mkdir(exist_ok=True)
+        (ood / f"{d.name}.json").write_text(json.dumps({
+            "env_id": "WindowInstall-B-Panel60x60-v0", "seed_set": "test", "episodes": 100,
+            "success_rate": k / 100, "cycle_time_s": 25.0, "pr_S": 1.0, "pr_I_given_S": 0.95,
+            "pr_T_given_I": k / 95}))
+    t7 = build(runs, tmp_path / "out", figures=False)["table7.md"]
+    row = next(ln for ln in t7.splitlines() if ln.startswith("| B | 0.6x0.6"))
+    assert "**93**" in row and "90 · 96" in row and "| 87 [79, 92] |" in row

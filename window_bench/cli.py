@@ -274,7 +274,9 @@ def cmd_run(args) -> int:
         run = Run(args.method, args.env, args.profile, args.seed, args.out, resume=args.resume,
                   operator=args.operator, demos=args.demos, acceptance_noise=noise,
                   track=args.track, encoder_weights=args.encoder_weights,
-                  agent_config=parse_overrides(args.agent_config))
+                  agent_config=parse_overrides(args.agent_config), h=args.h,
+                  final_episodes=args.final_episodes, final_seed_set=args.final_seed_set,
+                  stage1_cache=args.stage1_cache)
     except (ValueError, FileExistsError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -285,7 +287,7 @@ def cmd_run(args) -> int:
     except RunFileError as e:   # a run file that fails its check when it is read
         print(f"error: {e}", file=sys.stderr)
         return 2
-    f = r["final"]
+    f = {**r["final"], **{k: r["final_eval"][k] for k in ("success_rate", "wilson95", "episodes")}}
     lo, hi = f["wilson95"]
     t95 = f["time_to_95_sim_hours"]
     print(f"{args.method} on {args.env} ({args.profile}, seed {args.seed}): final success "
@@ -301,7 +303,8 @@ def cmd_eval(args) -> int:
     from window_bench.harness.run import evaluate_policy_file
 
     try:
-        r = evaluate_policy_file(args.checkpoint, args.episodes, env_id=args.env)
+        r = evaluate_policy_file(args.checkpoint, args.episodes, env_id=args.env,
+                                 seed_set=args.seed_set)
     except (FileNotFoundError, ValueError) as e:   # a missing, foreign or corrupt file
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -478,6 +481,18 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--agent-config", nargs="+", metavar="KEY=VALUE",
                    help="override fields of the agent's config (recorded in the results), "
                         "e.g. act_noise_scale=0.0 alpha=100")
+    from window_bench.harness.seeds import SEED_SETS
+
+    r.add_argument("--h", type=_positive, default=None,
+                   help="chunk horizon of a QC-FQL method (Tables 5/6; default: the method's)")
+    r.add_argument("--final-episodes", type=_positive, default=None, metavar="M",
+                   help="evaluate the final checkpoint with M fresh rollouts (reported runs: "
+                        "100 on the test seeds); default: the last checkpoint's evaluation")
+    r.add_argument("--final-seed-set", choices=sorted(SEED_SETS), default="dev",
+                   help="seeds of the final evaluation: dev (tuning) or test (reported)")
+    r.add_argument("--stage1-cache", default=None, metavar="DIR",
+                   help="share Stage I with runs of the same agent config, h, demos and seed "
+                        "through this cache directory (bench sweep sets it)")
     r.set_defaults(func=cmd_run)
     e = sub.add_parser("eval", help="evaluate a saved policy (interventions off)")
     e.add_argument("checkpoint", help="a policies/step_*.pt file of a run")
@@ -485,6 +500,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--env", type=_env_id, default=None,
                    help=ENV_HELP + " (None: the env the policy was trained on)")
     e.add_argument("--out", type=_out_file, help="write the summary to this JSON file")
+    e.add_argument("--seed-set", choices=sorted(SEED_SETS), default="dev",
+                   help="evaluation seeds: dev (tuning, default) or test (reported numbers)")
     e.set_defaults(func=cmd_eval)
     lb = sub.add_parser("leaderboard", help="regenerate the leaderboard from raw run files")
     lb.add_argument("--add", nargs="+", metavar="RUN_DIR", help="first copy these finished "

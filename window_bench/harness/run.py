@@ -49,6 +49,7 @@ import torch
 
 from window_bench.harness.agent import Agent, AgentSpec
 from window_bench.harness.evaluation import atomic_write, atomic_write_text, provenance, wilson_interval
+from window_bench.harness.seeds import DEV_SEED0, SEED_SETS, eval_seeds
 from window_bench.harness.methods import Method, Profile, agent_class, get_method, get_profile
 from window_bench.installer.rollout import Rollout
 from window_bench.data.steplog import ACTION_DIM, STEP_DT
@@ -56,7 +57,7 @@ from window_bench.envs.task import FAILURE_MODES
 
 RESULTS_SCHEMA = 1
 STEPS_PER_HOUR = 36_000            # 10 Hz
-EVAL_SEED0 = 100_000               # evaluation episodes use seeds EVAL_SEED0 + i
+EVAL_SEED0 = DEV_SEED0   # checkpoint evaluations use the development seeds (harness/seeds.py)
 TIME_TO_95_J = 3
 RATE_WINDOW = 20
 LOSS_LOG_EVERY = 500    # learner calls averaged into one TensorBoard point (loss/...)
@@ -192,15 +193,16 @@ def time_to_threshold(rates: list[float], steps: list[int], threshold: float = 0
 class Evaluator:
     """Parallel frozen-policy evaluation in spawned worker processes."""
 
-    def __init__(self, env_id: str, episodes: int, workers: int, max_steps: int):
+    def __init__(self, env_id: str, episodes: int, workers: int, max_steps: int,
+                 seed_set: str = "dev"):
         self.env_id, self.episodes, self.max_steps = env_id, episodes, max_steps
+        self.seeds = eval_seeds(seed_set, episodes)
         self.workers = max(1, min(workers, episodes))
         self.pool = None
 
     def __call__(self, agent_cls: type, policy_state: dict) -> list[dict]:
         """Rows of the M evaluation rollouts of ``agent_cls.from_policy_state_dict(policy_state)``."""
-        seeds = list(range(EVAL_SEED0, EVAL_SEED0 + self.episodes))
-        groups = [seeds[j::self.workers] for j in range(self.workers)]
+        groups = [self.seeds[j::self.workers] for j in range(self.workers)]
         tasks = [(agent_cls, policy_state, self.env_id, g, self.max_steps) for g in groups if g]
         if self.workers == 1:
             out = [_eval_worker(t) for t in tasks]
@@ -285,8 +287,23 @@ class Run:
                  track: str = "state", encoder_weights: str | os.PathLike | None = None,
                  demos: str | os.PathLike | None = None, progress: bool = True,
                  save_every_s: float = 60.0, acceptance_noise: dict | None = None,
-                 agent_config: dict | None = None):
+                 agent_config: dict | None = None, h: int | None = None,
+                 final_episodes: int | None = None, final_seed_set: str = "dev",
+                 stage1_cache: str | os.PathLike | None = None):
         self.method = get_method(method)
+        if h is not None:    # Tables 5/6: replay, agent and chunking all follow method.h
+            if self.method.agent != "qcfql":
+                raise ValueError(f"--h {h}: h is a run parameter of the QC-FQL methods, not of "
+                                 f"{method!r} (agent {self.method.agent!r})")
+            if isinstance(h, bool) or not isinstance(h, int) or not 1 <= h <= 100:
+                raise ValueError(f"--h {h!r}; allowed: an integer in 1..100")
+            import dataclasses
+
+            self.method = dataclasses.replace(self.method, h=h)
+        if final_episodes is not None:
+            eval_seeds(final_seed_set, final_episodes)      # checks both before any work
+        self.final_episodes, self.final_seed_set = final_episodes, final_seed_set
+        self.stage1_cache = stage1_cache
         self.profile = get_profile(profile)
         self.agent_cls = agent_class(self.method.agent)
         self._init_track(track, encoder_weights)
@@ -383,6 +400,7 @@ class Run:
         return {"stage": "offline", "offline_done": 0, "env_steps": 0, "episodes": [],
                 "checkpoints": [], "grad_steps": 0, "update_credit": 0.0, "wall_clock_s": 0.0,
                 "next_checkpoint": 0, "obs_dim": int(demos[0].observations.shape[1]),
+                "h": self.method.h,
                 "provenance_start": provenance()}
 
     def _make_replays(self, demos) -> None:
@@ -423,6 +441,9 @@ class Run:
             raise ValueError(f"--resume: the saved run is on the {st.get('track', 'state')!r} "
                              f"track, this command asks for {self.track!r}")
         self.c = st["counters"]
+        if self.c.setdefault("h", self.method.h) != self.method.h:
+            raise ValueError(f"--resume: the saved run has h = {self.c['h']}, this command "
+                             f"asks for h = {self.method.h}")
         self.agent = self.agent_cls.from_state_dict(st["agent"])
         self.agent.attach_demos(self._demos())
         self.demo_rb, self.online_rb = (_replay_from_state(st[k]) for k in ("demo_rb", "online_rb"))
@@ -446,7 +467,7 @@ class Run:
                                     p.max_episode_steps)
         try:
             if self.c["stage"] == "offline":
-                self._stage_i_offline_pretraining()
+                self._stage_i_cached()
             if self.c["stage"] == "evaluate0":
                 self._first_checkpoint()
             if self.c["stage"] in ("warm", "online"):
@@ -475,10 +496,89 @@ class Run:
         self.c["stage"] = "evaluate0"
         self._checkpoint_state()
 
+    def _stage_i_cached(self) -> None:
+        """Stage I, or its cached result when ``stage1_cache`` is set and a run with the same
+        agent, config, h, demonstrations and seed computed it (harness/stage1.py)."""
+        if self.stage1_cache is None or not self.method.offline_pretrain:
+            return self._stage_i_offline_pretraining()
+        from window_bench.harness.stage1 import Stage1Cache, demos_sha256, key_material, \
+            stage1_key
+
+        cache = Stage1Cache(self.stage1_cache)
+        demos = self._demos()
+        material = key_material(self.method.agent, self.agent.hyperparameters(),
+                                self._offline_steps(), self.profile.batch_size,
+                                demos_sha256(demos), self.seed)
+        key = stage1_key(material)
+        t0 = time.perf_counter()
+        with cache.lock(key):
+            waited = time.perf_counter() - t0
+            entry = cache.load(key)
+            if entry is None:
+                self._stage_i_offline_pretraining()
+                wall = time.perf_counter() - t0 - waited
+                cache.store(key, {"agent": self.agent.state_dict(),
+                                  "demo_rb_rng": self.demo_rb.state_dict()["rng_state"],
+                                  "torch_rng": torch.get_rng_state(),
+                                  "numpy_rng": np.random.get_state(legacy=False),
+                                  "offline_done": self.c["offline_done"],
+                                  "grad_steps": self.c["grad_steps"]}, material, wall)
+            else:
+                tree, meta = entry
+                self.agent = self.agent_cls.from_state_dict(tree["agent"])
+                self.agent.attach_demos(demos)
+                sd = self.demo_rb.state_dict()
+                sd["rng_state"] = tree["demo_rb_rng"]
+                self.demo_rb.load_state_dict(sd)
+                torch.set_rng_state(tree["torch_rng"])
+                np.random.set_state(tree["numpy_rng"])
+                self.c.update(offline_done=tree["offline_done"], grad_steps=tree["grad_steps"],
+                              stage="evaluate0")
+                wall = meta["stage1_wall_clock_s"]
+                self._checkpoint_state()
+        self.c["stage1"] = {"key": key, "cache_hit": entry is not None,
+                            "stage1_wall_clock_s": round(wall, 2),
+                            "lock_wait_s": round(waited, 2),
+                            "load_s": round(time.perf_counter() - t0 - waited, 2)
+                            if entry is not None else None}
+
+    def _stage1_evaluator(self, evaluator):
+        """Checkpoint 0 evaluates the Stage I result alone: with the cache, its rows are kept
+        in the cache entry and reused by the runs that share it."""
+        info = self.c.get("stage1")
+        if info is None:
+            return evaluator
+        from window_bench.harness.stage1 import Stage1Cache
+
+        cache = Stage1Cache(self.stage1_cache)
+        entry = cache.load(info["key"])
+        if entry is None:
+            return evaluator
+        tree, meta = entry
+        what = {"env_id": self.env_id, "seeds": evaluator.seeds, "max_steps": evaluator.max_steps}
+        if tree.get("eval0", {}).get("what") == what:
+            info["eval0_cache_hit"] = True
+            return lambda agent_cls, state: tree["eval0"]["rows"]
+
+        def evaluate_and_keep(agent_cls, state):
+            rows = evaluator(agent_cls, state)
+            cache.store(info["key"], {**tree, "eval0": {"what": what, "rows": rows}}, None,
+                        meta["stage1_wall_clock_s"])
+            return rows
+        info["eval0_cache_hit"] = False
+        return evaluate_and_keep
+
     def _first_checkpoint(self) -> None:
         """The pretrained (or initial) policy's checkpoint at 0 environment steps."""
         m = self.method
-        self._evaluate()
+        evaluator = self._evaluator
+        self._evaluator = self._stage1_evaluator(evaluator)
+        try:
+            self._evaluate()
+        finally:
+            self._evaluator = evaluator
+        if self.c.get("stage1"):   # bench sweep starts the runs that share it on this file
+            atomic_write_text(self.out / "stage1.json", json.dumps(self.c["stage1"], indent=1))
         self.c["next_checkpoint"] = self.profile.checkpoint_every
         self.c["stage"] = "warm" if m.warm_start else "online"
         if not m.warm_start and not m.online_updates:
@@ -646,12 +746,35 @@ class Run:
         return SummaryWriter(str(self.out / "tb"))
 
     # ------------------------------------------------------------------ results
+    def _final_eval(self) -> dict:
+        """The final checkpoint's policy file, its sha256, and its evaluation: M =
+        ``final_episodes`` fresh rollouts on ``final_seed_set`` (the test seeds for reported
+        runs), or else the last checkpoint's own evaluation on the development seeds."""
+        from window_bench.harness.files import sha256_file
+
+        last = self.c["checkpoints"][-1]
+        path = next((self.out / "policies").glob(f"step_{last['env_steps']:07d}.*"))
+        out = {"env_steps": last["env_steps"], "policy": path.relative_to(self.out).as_posix(),
+               "policy_sha256": sha256_file(path)}
+        if self.final_episodes is None:
+            keys = ("episodes", "successes", "success_rate", "wilson95", "cycle_time_s", "pr_S",
+                    "pr_I_given_S", "pr_T_given_I", "failure_modes")
+            return {"seed_set": "dev", "seeds": [DEV_SEED0, DEV_SEED0 + last["episodes"] - 1],
+                    **out, **{k: last[k] for k in keys}}
+        r = evaluate_policy_file(path, self.final_episodes, self.profile.eval_workers,
+                                 seed_set=self.final_seed_set,
+                                 max_steps=self.profile.max_episode_steps)
+        keys = ("episodes", "successes", "success_rate", "wilson95", "cycle_time_s", "pr_S",
+                "pr_I_given_S", "pr_T_given_I", "failure_modes", "seed_set")
+        return {"seeds": r["eval_seeds"], **out, **{k: r[k] for k in keys}}
+
     def _finish(self) -> dict:
         cps = self.c["checkpoints"]
         rates = [c["success_rate"] for c in cps]
         steps = [c["env_steps"] for c in cps]
         t95 = time_to_threshold(rates, steps) if self.method.online_updates else None
         final = cps[-1]
+        final_eval = self._final_eval()
         results = {
             "schema_version": RESULTS_SCHEMA, "method": self.method.as_dict(),
             "env_id": self.env_id, "profile": self.profile.as_dict(), "seed": self.seed,
@@ -670,7 +793,10 @@ class Run:
                       "wall_clock_s": round(self.c["wall_clock_s"], 1)},
             "checkpoints": cps,
             "train_episodes": self.c["episodes"],
+            "eval_seed_set": "dev",                             # the checkpoints' seeds
             "eval_seeds": [EVAL_SEED0, EVAL_SEED0 + self.profile.eval_episodes - 1],
+            "final_eval": final_eval,
+            "stage1": self.c.get("stage1"),
             "provenance": provenance(),                          # when the results were written
             "provenance_start": self.c.get("provenance_start"),  # the code the run started on
         }
@@ -681,18 +807,20 @@ class Run:
 
 
 def evaluate_policy_file(path: str | os.PathLike, episodes: int, workers: int = 2,
-                         env_id: str | None = None) -> dict:
+                         env_id: str | None = None, seed_set: str = "dev",
+                         max_steps: int = 600) -> dict:
     """``bench eval``: evaluate a frozen policy file from ``policies/`` (interventions off)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no policy file at {path}")
     st = torch.load(path, weights_only=False)
     env_id = env_id or st["env_id"]
-    ev = Evaluator(env_id, episodes, workers, 600)
+    ev = Evaluator(env_id, episodes, workers, max_steps, seed_set)
     try:
         rows = ev(agent_class(st["agent_kind"]), st["policy"])
     finally:
         ev.close()
     return {"policy": str(path), "method": st["method"], "env_id": env_id,
             "trained_env_steps": st["env_steps"], **summarize_eval(rows),
-            "eval_seeds": [EVAL_SEED0, EVAL_SEED0 + episodes - 1], "provenance": provenance()}
+            "seed_set": seed_set, "eval_seeds": [ev.seeds[0], ev.seeds[-1]],
+            "provenance": provenance()}

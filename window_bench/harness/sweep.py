@@ -23,7 +23,7 @@ seed set, and blocks of cells::
 
 Every cell is one ``bench run`` (or ``bench eval``) in its own process, started by a Ray task
 that asks for one CPU: a crash or an out-of-memory kill stays inside its cell and is recorded
-in ``<cell>/sweep_cell.json``. A cell's directory is its identity
+in ``OUT/sweep-logs/<cell>.json`` beside its log. A cell's directory is its identity
 (``<out>/<env>/<method>[-h<h>][-<overrides>]-<profile>-s<seed>``, the leaderboard's naming), so
 grids that share a cell (Table 5's h = 10 row is Table 2's) share its files. Before starting a
 cell the sweep reads its directory: finished (``results.json`` with the grid's final
@@ -61,7 +61,7 @@ from window_bench.harness.seeds import SEED_SETS
 GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "train", "evaluate"}
 TRAIN_KEYS = {"methods", "envs", "seeds", "h", "agent_config"}
 EVALUATE_KEYS = {"method", "env", "seeds", "on", "h", "agent_config"}
-CELL_FILE = "sweep_cell.json"
+LOGS = "sweep-logs"      # OUT/sweep-logs/<cell>.log and .json: nothing of ours in a run directory
 
 
 class GridError(ValueError):
@@ -88,13 +88,14 @@ class Cell:
 
     @property
     def name(self) -> str:
+        """``<env>/<run>`` for a training cell, ``<evaluated env>/<run>`` for an evaluation."""
         tag = f"-h{self.h}" if self.h is not None else ""
         tag += "".join(f"-{k}{v}" for k, v in self.agent_config)
-        base = f"{self.env_id}/{self.method}{tag}-{self.profile}-s{self.seed}"
-        return base if self.on is None else f"{base}/eval/{self.on}"
+        return f"{self.on or self.env_id}/{self.method}{tag}-{self.profile}-s{self.seed}"
 
     def path(self, out: Path) -> Path:
-        """The run directory (train cell) or the evaluation's JSON file."""
+        """The run directory (training cell) or the evaluation's JSON file (evaluation cell:
+        ``OUT/<evaluated env>/<run>.json``, beside, never inside, the run directory)."""
         return out / (self.name if self.on is None else self.name + ".json")
 
     @property
@@ -430,8 +431,7 @@ class Sweep:
                     for c in ready:
                         resume = cell_status(c, g, out) == "partial"
                         argv = cell_command(c, g, out, resume, self.stage1_cache)
-                        log = str((c.path(out) if c.on is None else c.path(out).parent)
-                                  / ("sweep.log" if c.on is None else f"{c.on}.log"))
+                        log = str(out / LOGS / f"{c.name}.log")
                         demos = None if c.on is not None else demos_command(c, g, out)
                         droot = None if demos is None else str(demos_dir(c, g, out))
                         running[task.remote(argv, log, demos, droot)] = (c, time.time(), resume)
@@ -490,9 +490,8 @@ class Sweep:
         return picked
 
     def _record(self, c: Cell, r: dict) -> None:
-        path = (c.path(self.out) / CELL_FILE if c.on is None
-                else c.path(self.out).with_suffix(".sweep.json"))
-        atomic_write_text(path, json.dumps({"cell": c.name, **r}, indent=1))
+        atomic_write_text(self.out / LOGS / f"{c.name}.json",
+                          json.dumps({"cell": c.name, **r}, indent=1))
 
     def _summary(self, results: dict, wall: float, interrupted: bool) -> dict:
         return {"grid": self.grid.name, "grid_file": str(self.grid.path),

@@ -1,8 +1,8 @@
 """``bench tables``: the paper's Tables 2-7 and Figs. 10/11, regenerated from raw run files.
 
 Inputs are only the raw files ``bench run`` / ``bench sweep`` wrote under a runs root:
-``<env>/<cell>/results.json`` of training cells and ``<env>/<cell>/eval/<ood env>.json`` of
-Table 7's evaluation-only cells. Cells are grouped into table rows by what was run (method,
+``<env>/<run>/results.json`` of training cells and ``<ood env>/<run>.json`` (``bench eval``
+output) of Table 7's evaluation-only cells, whose training cell is ``<env>/<run>``. Cells are grouped into table rows by what was run (method,
 h, agent-config overrides, profile, evaluation seed set, M); within a row the seeds are the
 samples. Per cell we print our mean over seeds with a 95 % bootstrap interval across seeds,
 the per-seed values, n, and the paper's number beside it
@@ -121,12 +121,14 @@ def load_runs(root: str | os.PathLike) -> dict[RowKey, list[Sample]]:
             takeover_min=f.get("takeover_minutes"),
             online_h=f["sim_hours"] if (m["online_updates"] or m["warm_start"]) else None,
             path=str(path.parent.relative_to(root)), episodes=r.get("train_episodes") or []))
-        for ev_path in sorted((path.parent / "eval").glob("*.json")):
-            if ev_path.name.endswith(".sweep.json"):
+        for panel_id, panel in PANELS.items():
+            ood = r["env_id"].replace("-v0", f"-{panel_id}-v0")
+            ev_path = root / ood / f"{path.parent.name}.json"
+            if not ev_path.is_file():
                 continue
             ev = json.loads(ev_path.read_text())
-            panel = next((v for k, v in PANELS.items() if f"-{k}-" in ev["env_id"]), None)
-            if panel is None:
+            if ev.get("env_id") != ood:
+                print(f"warning: skipped {ev_path}: env_id {ev.get('env_id')!r}", file=sys.stderr)
                 continue
             ekey = RowKey(key.setting, key.method, key.h, key.overrides, key.profile,
                           ev["seed_set"], ev["episodes"], key.track, panel)
@@ -230,7 +232,10 @@ def _caption(keys, rows) -> str:
             parts.append(f"`{prof}` profile: budget {p.budget_steps:,} env steps "
                          f"({p.budget_steps / STEPS_PER_HOUR:.2f} simulated h; the paper's is "
                          f"3.0 h), {p.offline_steps:,} offline updates, UTD {p.utd:g}, "
-                         f"MLPs {'x'.join(map(str, p.hidden))}")
+                         f"MLPs {'x'.join(map(str, p.hidden))}; time-to-95 from the checkpoint "
+                         f"evaluations (M = {p.eval_episodes} on the development seeds every "
+                         f"{p.checkpoint_every:,} env steps, the profile's M; only the final "
+                         f"checkpoint gets the M of the *run* column)")
     sets = sorted({(k.seed_set, k.M) for k in keys})
     parts.append("final evaluation: " + "; ".join(
         f"M = {M} on the {'held-out test' if s == 'test' else 'development'} seeds"
