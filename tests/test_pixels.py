@@ -348,3 +348,27 @@ def test_the_shipped_default_encoder_loads_with_its_record():
     record = W.weights_record(W.DEFAULT_WEIGHTS)
     assert record["command"].startswith("bench encoder train")
     assert record["heldout_quality"]["panel position rel. seat (mm)"]["r2"] > 0.5
+
+
+def test_bench_run_on_the_pixel_track(tmp_path):
+    """``Run(track="pixels")``: the pixel agent kind, demos re-observed, evaluation workers
+    on the pixel env, the track and the encoder in results.json; a method whose agent has no
+    pixel front end, and a missing weights file, are refused before any work."""
+    import json
+
+    from window_bench.harness.run import Run
+
+    out = tmp_path / "run"
+    run = Run("qcfql-offline", ENV, "smoke", 0, out, track="pixels", progress=False)
+    assert run.method.agent == "qcfql-pixels" and run.encoder["weights"].startswith("default:")
+    r = run.train()
+    saved = json.loads((out / "results.json").read_text())
+    assert r["track"] == saved["track"] == "pixels"
+    assert saved["method"]["agent"] == "qcfql-pixels"
+    assert saved["encoder"]["sha256"] and saved["encoder"]["command"].startswith("bench encoder")
+    assert len(saved["checkpoints"]) == 1 and saved["checkpoints"][0]["episodes"] == 2
+    with pytest.raises(ValueError, match="not available for the 'hilserl' agent"):
+        Run("hil-serl", ENV, "smoke", 0, tmp_path / "h", track="pixels")
+    with pytest.raises(W.WeightsError, match="no such file"):
+        Run("qcfql", ENV, "smoke", 0, tmp_path / "w", track="pixels",
+            encoder_weights=tmp_path / "absent.safetensors")
