@@ -99,11 +99,12 @@ def test_a_toy_agent_runs_through_bench_run_with_no_harness_change(tmp_path, dem
     assert r["final"]["grad_steps"] == 20 + round(0.05 * 300)
     assert sum(e["steps"] for e in r["train_episodes"]) <= 400
     # The frozen policies hold the acting state only, and bench eval rebuilds them.
-    pol = torch.load(out / "policies" / "step_0000400.pt", weights_only=False)
-    assert pol["agent_kind"] == "toy-bc" and set(pol["policy"]) == {"obs_dim", "seed", "mean",
-                                                                     "std", "net"}
+    from window_bench.harness.files import load_state
+
+    pol, meta = load_state(out / "policies" / "step_0000400.safetensors", "policy")
+    assert meta["agent_kind"] == "toy-bc" and set(pol) == {"obs_dim", "seed", "mean", "std", "net"}
     capsys.readouterr()
-    assert main(["eval", str(out / "policies" / "step_0000400.pt"), "--episodes", "2"]) == 0
+    assert main(["eval", str(out / "policies" / "step_0000400.safetensors"), "--episodes", "2"]) == 0
     assert "toy-bc (400 env steps) on WindowInstall-A-v0: " in capsys.readouterr().out
 
 

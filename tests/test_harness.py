@@ -131,19 +131,19 @@ def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
     # Every training episode is accounted for (takeover steps only after the warm start).
     assert sum(e["steps"] for e in r["train_episodes"]) <= 400
     capsys.readouterr()
-    assert main(["eval", str(out / "policies" / "step_0000400.pt"), "--episodes", "2"]) == 0
+    assert main(["eval", str(out / "policies" / "step_0000400.safetensors"), "--episodes", "2"]) == 0
     assert "qcfql (400 env steps) on WindowInstall-A-v0: " in capsys.readouterr().out
     # The leaderboard is regenerated from the raw run files.
     from window_bench.harness.leaderboard import add_run, build
 
     dest = add_run(out, tmp_path / "lb")
     assert sorted(p.name for p in dest.iterdir()) == ["checkpoints.csv", "learning_curve.png",
-                                                       "results.json"]
+                                                       "manifest.json", "results.json"]
     body = build(tmp_path / "lb", readme=tmp_path / "LB.md", snippet=None)
     assert "| WindowInstall-A-v0 | Ours (complete pipeline) (`qcfql`) | smoke | 0 |" in body
     assert body in (tmp_path / "LB.md").read_text()
     # The run directory is not silently reused.
-    with pytest.raises(FileExistsError, match="--resume"):
+    with pytest.raises(ValueError, match="already holds a run .* pass --resume"):
         Run("qcfql", "WindowInstall-A-v0", "smoke", 0, out)
 
 
@@ -185,8 +185,10 @@ def test_resume_after_a_kill_reproduces_the_run(tmp_path, demos_root, method):
     strip = lambda cps: [{k: v for k, v in c.items() if k != "wall_clock_s"} for c in cps]  # noqa: E731
     assert strip(resumed["checkpoints"]) == strip(whole["checkpoints"])
     assert resumed["train_episodes"] == whole["train_episodes"]
-    a = torch.load(tmp_path / "whole" / "state.pt", weights_only=False)
-    b = torch.load(tmp_path / "killed" / "state.pt", weights_only=False)
+    from window_bench.harness.files import load_state
+
+    a, _ = load_state(tmp_path / "whole" / "state.safetensors", "state")
+    b, _ = load_state(tmp_path / "killed" / "state.safetensors", "state")
     _assert_same(a["agent"], b["agent"])
     _assert_same(a["online_rb"], b["online_rb"])
     with pytest.raises(ValueError, match="seed = 3"):

@@ -7,7 +7,7 @@
     bench teleop    --env WindowInstall-A-v0 --record demos    # a person at the keyboard
     bench methods                                              # Table 1 from the registry
     bench run --method qcfql --env WindowInstall-A-v0 --profile smoke --seed 0 --out runs/x
-    bench eval runs/x/policies/step_0000400.pt --episodes 20
+    bench eval runs/x/policies/step_0000400.safetensors --episodes 20
     bench leaderboard --add runs/x                             # tables from raw run files
     bench sweep experiments/table2.toml --out leaderboard/runs # a grid of runs on Ray
     bench tables --runs leaderboard/runs --out docs/results    # Tables 2-7, Figs. 10/11
@@ -280,8 +280,6 @@ def cmd_run(args) -> int:
     except (ValueError, FileExistsError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    from window_bench.harness.files import RunFileError
-
     try:
         r = run.train()
     except RunFileError as e:   # a run file that fails its check when it is read
@@ -402,8 +400,8 @@ ENV_HELP = "registered env id: WindowInstall-{A,B}[-Panel40x40|-Panel60x60|-Pane
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="bench", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = _Parser(prog="bench", description=__doc__,
+                formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True, parser_class=_SubParser)
     i = sub.add_parser("install", help="run a reference controller and print per-episode stages")
     i.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
@@ -495,7 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "through this cache directory (bench sweep sets it)")
     r.set_defaults(func=cmd_run)
     e = sub.add_parser("eval", help="evaluate a saved policy (interventions off)")
-    e.add_argument("checkpoint", help="a policies/step_*.pt file of a run")
+    e.add_argument("checkpoint", help="a policies/step_*.safetensors file of a run")
     e.add_argument("--episodes", type=_positive, default=100, help="evaluation episodes")
     e.add_argument("--env", type=_env_id, default=None,
                    help=ENV_HELP + " (None: the env the policy was trained on)")

@@ -85,24 +85,16 @@ class CameraRecorder(gym.Wrapper):
 
 
 def make_policy(policy: str, env: gym.Env, seed: int):
-    """A reference controller by name, or the frozen policy in a ``policies/*.pt`` file
-    (read with ``weights_only=True``: a file cannot run code)."""
+    """A reference controller by name, or the frozen policy in a ``policies/*.safetensors``
+    file (checked and read without pickle: a file cannot run code)."""
     from window_bench.installer.scripted import CONTROLLERS
 
     if policy in CONTROLLERS:
         return CONTROLLERS[policy](env, seed=seed)
-    path = Path(policy)
-    import torch
+    from window_bench.harness.run import AgentPolicy, load_policy_file
 
-    from window_bench.harness.methods import agent_class
-    from window_bench.harness.run import AgentPolicy
-
-    try:
-        st = torch.load(path, weights_only=True, map_location="cpu")
-        agent = agent_class(st["agent_kind"]).from_policy_state_dict(st["policy"])
-    except Exception as e:  # noqa: BLE001 - any file that is not one of our policy files
-        raise ValueError(f"{path} is not a readable policy file: {type(e).__name__}: {e}") from None
-    return AgentPolicy(agent, deterministic=True)
+    agent_cls, state, _ = load_policy_file(policy)   # RunFileError (a ValueError) if not ours
+    return AgentPolicy(agent_cls.from_policy_state_dict(state), deterministic=True)
 
 
 def record(env_id: str, policy: str, seeds: list[int], out: str | os.PathLike,

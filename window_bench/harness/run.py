@@ -22,9 +22,12 @@ episodes, cumulative takeover minutes, and time-to-95 (the first checkpoint wher
 Outputs in ``--out``: ``results.json`` (schema-versioned: method, env, profile, seed,
 hyperparameters, versions, git commit, every checkpoint), ``checkpoints.csv``,
 ``learning_curve.png``, TensorBoard scalars under ``tb/``, the frozen policy of every
-checkpoint under ``policies/`` (``bench eval`` reads them), and ``state.pt``, the atomic
-training state (agent, optimizer, replay, RNGs, counters) written at episode boundaries, from
-which ``--resume`` continues a killed run exactly where the state was saved.
+checkpoint under ``policies/`` (acting weights only; ``bench eval`` reads them), and
+``state.safetensors``, the atomic training state (agent, optimizer, replay, RNGs, counters)
+written at episode boundaries, from which ``--resume`` continues a killed run exactly where
+the state was saved. The directory is owned through :class:`~window_bench.harness.files.RunDir`:
+locked while the run writes, every file in ``manifest.json`` with its sha256 and verified when
+it is read back, nothing pickled; the whole configuration is checked before any of it.
 
 The harness runs every method through one loop: it holds an
 :class:`~window_bench.harness.agent.Agent` built from the registry
@@ -48,7 +51,9 @@ import numpy as np
 import torch
 
 from window_bench.harness.agent import Agent, AgentSpec
-from window_bench.harness.evaluation import atomic_write, atomic_write_text, provenance, wilson_interval
+from window_bench.harness.evaluation import atomic_write_text, provenance, wilson_interval
+from window_bench.harness.files import (STATE, RunDir, RunFileError, find_run_dir, load_state,
+                                        verify_files)
 from window_bench.harness.seeds import DEV_SEED0, SEED_SETS, eval_seeds
 from window_bench.harness.methods import Method, Profile, agent_class, get_method, get_profile
 from window_bench.installer.rollout import Rollout
@@ -228,11 +233,7 @@ def _replay_from_state(sd: dict):
 
 
 # ---------------------------------------------------------------------------- files
-def _atomic_torch_save(obj, path: Path) -> None:
-    atomic_write(path, lambda f: torch.save(obj, f))
-
-
-def _write_csv(path: Path, checkpoints: list[dict]) -> None:
+def _checkpoints_csv(checkpoints: list[dict]) -> str:
     cols = ["env_steps", "sim_hours", "wall_clock_s", "episodes", "successes", "success_rate",
             "wilson_lo", "wilson_hi", "cycle_time_s", "pr_S", "pr_I_given_S", "pr_T_given_I",
             "takeover_minutes", "train_success_rate", "train_intervention_rate",
@@ -244,12 +245,12 @@ def _write_csv(path: Path, checkpoints: list[dict]) -> None:
         row = {**c, "wilson_lo": c["wilson95"][0], "wilson_hi": c["wilson95"][1],
                "failure_modes": json.dumps(c["failure_modes"])}
         w.writerow(["" if row.get(k) is None else row.get(k) for k in cols])
-    atomic_write_text(path, buf.getvalue())
+    return buf.getvalue()
 
 
-def plot_learning_curve(results: dict, path: Path) -> None:
+def plot_learning_curve(results: dict) -> bytes:
     """Success with its Wilson band and the training intervention rate vs simulated hours
-    (the layout of the paper's Figs. 10 and 11)."""
+    (the layout of the paper's Figs. 10 and 11), as PNG bytes."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -274,8 +275,10 @@ def plot_learning_curve(results: dict, path: Path) -> None:
     a2.set_ylabel("intervention rate,\nlast 20 episodes (%)")
     a2.set_xlabel("online interaction (simulated hours, warm start included)")
     fig.tight_layout()
-    atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110))
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
+    return buf.getvalue()
 
 
 # ---------------------------------------------------------------------------- the run
@@ -326,13 +329,18 @@ class Run:
         self.out = Path(out)
         self.demos_root = Path(demos) if demos is not None else self.out / "demos"
         self.progress, self.save_every_s = progress, float(save_every_s)
-        self.state_path = self.out / "state.pt"
-        if self.state_path.exists() and not resume:
-            raise FileExistsError(f"{self.out} already holds a run (state.pt); pass --resume to "
-                                  "continue it or choose another --out")
-        if resume and not self.state_path.exists() and (self.out / "results.json").exists():
-            raise FileExistsError(f"{self.out} holds a finished run (results.json, no state)")
-        self.out.mkdir(parents=True, exist_ok=True)
+        h = self.agent_config.get("h", self.method.h)
+        if h != self.method.h:
+            raise ValueError(f"--agent-config h = {h!r}: the method {self.method.name} has h = "
+                             f"{self.method.h} (Table 1); choose the method with the chunk "
+                             f"horizon you want")
+        # Demos that exist are read now: one that cannot be read stops the run before any file.
+        self._raw_demos = self._raw_demo_episodes(collect=False)
+        self.files = RunDir(self.out, {
+            "method": self.method.name, "env_id": self.env_id, "profile": self.profile.name,
+            "seed": self.seed, "operator": self.operator, "track": self.track, "h": self.method.h,
+            "acceptance_noise": self.acceptance_noise, "agent_config": self.agent_config},
+            resume)
         self._stop_after_env_steps = None   # tests: simulate a kill (no state written)
         self._tb, self._loss_acc = None, []
         self.loss_log_every = LOSS_LOG_EVERY
@@ -367,20 +375,28 @@ class Run:
                                    if k in record})
 
     # ------------------------------------------------------------------ setup
-    def _demos(self):
-        from window_bench.installer.demos import collect_demos, load_demos
+    def _raw_demo_episodes(self, collect: bool):
+        """D_demo as recorded: read, or (``collect``) collected first where there is no
+        dataset - never over one that exists and cannot be read."""
+        from window_bench.installer.demos import demo_dataset_path, load_or_collect_demos
 
-        try:
-            eps = load_demos(self.demos_root, self.env_id, self.operator)
-        except ValueError:
-            collect_demos(self.env_id, self.profile.n_demos, self.demos_root,
-                          operator=self.operator, seed=1_000_000 + self.seed,
-                          progress=self.progress)
-            eps = load_demos(self.demos_root, self.env_id, self.operator)
+        missing = not demo_dataset_path(self.demos_root, self.env_id, self.operator).exists()
+        if missing and not collect:
+            return None
+        eps = load_or_collect_demos(self.demos_root, self.env_id, self.operator,
+                                    self.profile.n_demos, seed=1_000_000 + self.seed,
+                                    progress=self.progress)
+        if missing and self.demos_root == self.out / "demos":
+            self.files.record("demos")   # collected into the run: listed, verified on resume
         if len(eps) < self.profile.n_demos:
             raise ValueError(f"{self.demos_root}: {len(eps)} demonstrations, the profile needs "
                              f"{self.profile.n_demos}")
-        eps = eps[: self.profile.n_demos]
+        return eps[: self.profile.n_demos]
+
+    def _demos(self):
+        eps = self._raw_demos
+        if eps is None:
+            eps = self._raw_demos = self._raw_demo_episodes(collect=True)
         if self.track == "pixels":   # re-observed once per Run: it renders and encodes
             if self._pixel_demos is None:
                 from window_bench.pixels.track import pixel_demos
@@ -419,27 +435,15 @@ class Run:
                                      seed=self.seed + 1)
 
     def _save(self) -> None:
-        _atomic_torch_save({"counters": self.c, "agent": self.agent.state_dict(),
-                            "demo_rb": self.demo_rb.state_dict(),
-                            "online_rb": self.online_rb.state_dict(),
-                            "torch_rng": torch.get_rng_state(),
-                            "numpy_rng": np.random.get_state(legacy=False),
-                            "method": self.method.name, "env_id": self.env_id,
-                            "profile": self.profile.name, "seed": self.seed,
-                            "operator": self.operator, "track": self.track}, self.state_path)
+        self.files.write_state(STATE, {
+            "counters": self.c, "agent": self.agent.state_dict(),
+            "demo_rb": self.demo_rb.state_dict(), "online_rb": self.online_rb.state_dict(),
+            "torch_rng": torch.get_rng_state(), "numpy_rng": np.random.get_state(legacy=False)},
+            "state", self.files.identity)
         self._last_save = time.perf_counter()
 
     def _load(self) -> None:
-        st = torch.load(self.state_path, weights_only=False)
-        for key, mine in (("method", self.method.name), ("env_id", self.env_id),
-                          ("profile", self.profile.name), ("seed", self.seed),
-                          ("operator", self.operator)):
-            if st[key] != mine:
-                raise ValueError(f"--resume: the saved run has {key} = {st[key]!r}, this "
-                                 f"command asks for {mine!r}")
-        if st.get("track", "state") != self.track:
-            raise ValueError(f"--resume: the saved run is on the {st.get('track', 'state')!r} "
-                             f"track, this command asks for {self.track!r}")
+        st, _ = self.files.read_state(STATE, "state")   # RunDir checked the run's identity
         self.c = st["counters"]
         if self.c.setdefault("h", self.method.h) != self.method.h:
             raise ValueError(f"--resume: the saved run has h = {self.c['h']}, this command "
@@ -454,9 +458,15 @@ class Run:
     # ------------------------------------------------------------------ the run, top to bottom
     def train(self) -> dict:
         """Stage I, the first checkpoint, Stages II-III; a resumed run skips what is done."""
+        try:
+            return self._train()
+        finally:
+            self.files.close()   # the lock; the OS releases it too if the process dies
+
+    def _train(self) -> dict:
         torch.set_num_threads(1)
         self._t0 = self._last_save = time.perf_counter()
-        if self.state_path.exists():
+        if self.files.has(STATE):
             self._load()
         else:
             self.c = self._fresh()
@@ -724,12 +734,10 @@ class Run:
               "grad_steps": self.c["grad_steps"]}
         cp = {k: (float(v) if isinstance(v, np.floating) else v) for k, v in cp.items()}
         self.c["checkpoints"].append(cp)
-        pol_dir = self.out / "policies"
-        pol_dir.mkdir(exist_ok=True)
-        _atomic_torch_save({"agent_kind": self.method.agent, "policy": state,
-                            "method": self.method.name, "env_id": self.env_id, "env_steps": step,
-                            "profile": self.profile.name, "seed": self.seed},
-                           pol_dir / f"step_{step:07d}.pt")
+        self.files.write_state(f"policies/step_{step:07d}.safetensors", state, "policy", {
+            "agent_kind": self.method.agent, "method": self.method.name, "env_id": self.env_id,
+            "profile": self.profile.name, "seed": self.seed, "track": self.track,
+            "env_steps": step})
         if tb is not None:
             for key in ("success_rate", "takeover_minutes", "train_intervention_rate",
                         "train_success_rate", "wall_clock_s"):
@@ -800,27 +808,48 @@ class Run:
             "provenance": provenance(),                          # when the results were written
             "provenance_start": self.c.get("provenance_start"),  # the code the run started on
         }
-        atomic_write_text(self.out / "results.json", json.dumps(results, indent=1))
-        _write_csv(self.out / "checkpoints.csv", cps)
-        plot_learning_curve(results, self.out / "learning_curve.png")
+        self.files.write("results.json", json.dumps(results, indent=1).encode())
+        self.files.write("checkpoints.csv", _checkpoints_csv(cps).encode())
+        self.files.write("learning_curve.png", plot_learning_curve(results))
         return results
+
+
+def load_policy_file(path: str | os.PathLike) -> tuple[type, dict, dict]:
+    """``(agent class, policy state, metadata)`` of a frozen policy file, checked before
+    anything runs: against its run's ``manifest.json`` when it lies in a run directory,
+    against its own sha256 always, and rebuilt once; :class:`RunFileError` otherwise."""
+    import window_bench
+
+    path = Path(path)
+    run_dir = find_run_dir(path)
+    if run_dir is not None:
+        verify_files(run_dir, [path.resolve().relative_to(run_dir).as_posix()])
+    policy, meta = load_state(path, "policy")
+    try:
+        agent_cls = agent_class(meta["agent_kind"])
+        if meta["env_id"] not in window_bench.ENV_IDS:
+            raise ValueError(f"env {meta['env_id']!r} is not registered")
+        agent_cls.from_policy_state_dict(policy)   # here, not in a worker's traceback
+    except (KeyError, ValueError, TypeError, RuntimeError) as e:
+        raise RunFileError(f"{path}: does not hold a policy this window-bench can run "
+                           f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+                           ) from None
+    return agent_cls, policy, meta
 
 
 def evaluate_policy_file(path: str | os.PathLike, episodes: int, workers: int = 2,
                          env_id: str | None = None, seed_set: str = "dev",
                          max_steps: int = 600) -> dict:
-    """``bench eval``: evaluate a frozen policy file from ``policies/`` (interventions off)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no policy file at {path}")
-    st = torch.load(path, weights_only=False)
-    env_id = env_id or st["env_id"]
+    """``bench eval``: evaluate a frozen policy file from ``policies/`` (interventions off),
+    after :func:`load_policy_file` checked it."""
+    agent_cls, policy, meta = load_policy_file(path)
+    env_id = env_id or meta["env_id"]
     ev = Evaluator(env_id, episodes, workers, max_steps, seed_set)
     try:
-        rows = ev(agent_class(st["agent_kind"]), st["policy"])
+        rows = ev(agent_cls, policy)
     finally:
         ev.close()
-    return {"policy": str(path), "method": st["method"], "env_id": env_id,
-            "trained_env_steps": st["env_steps"], **summarize_eval(rows),
+    return {"policy": str(path), "method": meta["method"], "env_id": env_id,
+            "trained_env_steps": meta["env_steps"], **summarize_eval(rows),
             "seed_set": seed_set, "eval_seeds": [ev.seeds[0], ev.seeds[-1]],
             "provenance": provenance()}
