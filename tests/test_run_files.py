@@ -111,6 +111,31 @@ def test_run_files_are_listed_verified_and_follow_the_umask(runs):
     assert "critic" not in policy and "optimizer" not in json.dumps(list(policy))
 
 
+def test_a_sigkill_at_a_random_moment_resumes_to_the_same_run(runs, tmp_path):
+    """The same run as the module's, SIGKILLed at a random moment after it took its directory,
+    then resumed: every file still verifies, and the result is bit-identical."""
+    import random
+    import signal
+
+    out = tmp_path / "killed"
+    cmd = BENCH + RUN + ["--out", str(out), "--demos", str(runs.demos)]
+    p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    while not (out / ".lock").exists() or not (out / ".lock").read_text():
+        assert p.poll() is None
+        time.sleep(0.02)
+    time.sleep(random.Random().uniform(0.0, 20.0))
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    verify_files(out)
+    r = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    strip = lambda cps: [{k: v for k, v in c.items() if k != "wall_clock_s"} for c in cps]  # noqa: E731
+    a, b = (json.loads((d / "results.json").read_text()) for d in (runs.out, out))
+    assert strip(a["checkpoints"]) == strip(b["checkpoints"])
+    pa, pb = (load_state(d / POLICY, "policy")[0] for d in (runs.out, out))
+    assert json.dumps(pa, default=lambda t: t.tolist()) == json.dumps(pb, default=lambda t: t.tolist())
+
+
 def test_atomic_write_respects_the_umask(tmp_path):
     old = os.umask(0o027)
     try:
@@ -176,7 +201,7 @@ def test_a_damaged_file_is_refused_naming_it(runs, tmp_path, capsys, fault, targ
     assert rc == 2 and line.startswith(f"error: {path}: ")
     if target == "policy outside its run":   # no manifest: the file's own sha256 catches it
         assert ("content does not match its sha256" if fault == "flip"
-                else "not a readable window-bench file (truncated or corrupt") in line
+                else "not a window-bench policy file, or a truncated or corrupt one (") in line
     else:
         assert f"sha256 does not match {d / 'manifest.json'}" in line
     assert line.endswith("restore it from a copy or start a new run")
@@ -286,7 +311,9 @@ def test_bad_paths_are_one_line_errors(runs, tmp_path, capsys):
         f"bench run: error: argument --out: {tmp_path / 'afile' / 'run'}: {tmp_path / 'afile'} "
         f"is a file, not a directory")
     assert main(["eval", str(runs.out / "results.json"), "--episodes", "1"]) == 2
-    assert "not a readable window-bench file (truncated or corrupt" in one_line(capsys.readouterr().err)
+    assert one_line(capsys.readouterr().err).startswith(
+        f"error: {runs.out / 'results.json'}: not a window-bench policy file, or a truncated or "
+        f"corrupt one (")
     assert main(["eval", str(tmp_path / "none.safetensors")]) == 2
     assert one_line(capsys.readouterr().err) == f"error: {tmp_path / 'none.safetensors'}: no such file"
     assert snapshot(tmp_path) == {"afile": hashlib.sha256(b"x").hexdigest()}

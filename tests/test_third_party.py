@@ -238,6 +238,6 @@ def test_bench_video_writes_an_mp4_per_episode(tmp_path, capsys):
     assert "size 10 px is outside [64, 480]" in capsys.readouterr().err
     # A file that is not a policy file (read without unpickling): one line, exit 2.
     assert main(["video", "--policy", str(tmp_path / "videos.json"), "--out", str(tmp_path)]) == 2
-    assert "videos.json: not a readable window-bench file" in capsys.readouterr().err
+    assert "videos.json: not a window-bench policy file" in capsys.readouterr().err
     assert main(["video", "--policy", "magic", "--out", str(tmp_path)]) == 2
     assert "neither a controller" in capsys.readouterr().err

@@ -150,21 +150,26 @@ def parse_state(data: bytes, path, kind: str):
                                f"can run code; window-bench reads only the .safetensors files "
                                f"bench run writes") from None
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise RunFileError(f"{path}: not a readable window-bench file (truncated or corrupt: "
-                           f"{msg}); {fix}") from None
+        raise RunFileError(f"{path}: not a window-bench {kind} file, or a truncated or corrupt "
+                           f"one ({msg}); {fix}") from None
     if header.get("version") != str(STATE_VERSION):
         raise RunFileError(f"{path}: state format version {header.get('version')!r}, this "
                            f"window-bench reads {STATE_VERSION}")
     if header.get("kind") != kind:
         raise RunFileError(f"{path}: a window-bench {header.get('kind')!r} file, not a {kind} "
                            f"file")
-    if _content_sha256(header, tensors) != header.get("sha256"):
+    try:
+        digest = _content_sha256(header, tensors)
+    except (KeyError, AttributeError, TypeError, ValueError):
+        digest = None   # a header without our fields: no digest can match
+    if digest is None or digest != header.get("sha256"):
         raise RunFileError(f"{path}: content does not match its sha256 (corrupt or edited "
                            f"after bench wrote it); {fix}")
     try:
         return _decode(json.loads(header["tree"]), tensors), _decode(json.loads(header["meta"]), {})
     except (ValueError, KeyError, TypeError, IndexError, AttributeError, RecursionError) as e:
-        raise RunFileError(f"{path}: not a readable window-bench file ({e}); {fix}") from None
+        raise RunFileError(f"{path}: not a window-bench {kind} file, or a corrupt one ({e}); "
+                           f"{fix}") from None
 
 
 def read_bytes(path) -> bytes:
