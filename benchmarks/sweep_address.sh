@@ -7,6 +7,9 @@ set -uo pipefail
 OUT=${1:?usage: sweep_address.sh OUT [PORT]}
 PORT=${2:-6390}
 export OMP_NUM_THREADS=1 MUJOCO_GL=egl
+# Ray 2.60 clusters use token authentication (token in ~/.ray/auth_token); the CLI client
+# only sends it when told to.
+export RAY_AUTH_MODE=token
 mkdir -p "$OUT"
 LOG="$OUT/log.txt"
 say() { echo "[$(date -u +%H:%M:%S)] $*" | tee -a "$LOG"; }

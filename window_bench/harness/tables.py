@@ -490,11 +490,16 @@ tuning run ever evaluated on (`window_bench/harness/seeds.py`). The rule:
 - every reported run evaluates its final checkpoint with M = 100 on the test seeds
   (`bench sweep` grids, `--final-seed-set test`), and Table 7's out-of-distribution cells do
   the same;
+- nothing is ever chosen by looking at test-seed numbers: a design choice is made on the
+  development seeds, and a change after a test number was published is a new row, not a
+  retune of the old one;
 - every results file says which set it used (`final_eval.seed_set`; files from before the
   protocol record only `eval_seeds`, which start at 100000: development seeds), and every
   table row says so too (*dev* marks development-seed rows).
 
-Runs: {n_runs} training runs and {n_evals} evaluation-only cells.
+Runs: {n_runs} training runs and {n_evals} evaluation-only cells. How the grids behind these
+tables are run (Ray, resuming, the Stage I cache) and what it measured: [Running the
+grids](sweep.md).
 """
 
 
