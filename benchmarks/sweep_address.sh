@@ -42,3 +42,6 @@ print('summary: address', s['address'], 'workers', s['workers'], \
 kill -TERM "$HEAD"
 wait "$HEAD"
 say "ray head stopped (exit $?)"
+# `ray start` records the cluster for later ray.init() calls; signalling it (unlike `ray
+# stop`, which would stop every Ray on the machine) leaves that record behind: remove ours.
+grep -qs ":$PORT\$" /tmp/ray/ray_current_cluster && rm -f /tmp/ray/ray_current_cluster

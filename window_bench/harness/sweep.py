@@ -391,7 +391,8 @@ class Sweep:
         if self.address:
             ray.init(address=self.address, **kw)
         else:
-            ray.init(num_cpus=self.workers or os.cpu_count(), **kw)
+            # "local": always a new cluster of our own, never one a `ray start` left behind
+            ray.init(address="local", num_cpus=self.workers or os.cpu_count(), **kw)
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self.slots = min(self.workers or cpus, cpus)
         return ray
