@@ -367,6 +367,18 @@ def test_bench_run_on_the_pixel_track(tmp_path):
     assert saved["method"]["agent"] == "qcfql-pixels"
     assert saved["encoder"]["sha256"] and saved["encoder"]["command"].startswith("bench encoder")
     assert len(saved["checkpoints"]) == 1 and saved["checkpoints"][0]["episodes"] == 2
+    # Determinism: the same seed again (on the same demonstrations) gives the same policy
+    # tensors and the same evaluation. (The files' own sha256 can differ: safetensors
+    # writes its metadata map in no fixed order.)
+    again = Run("qcfql-offline", ENV, "smoke", 0, tmp_path / "again", track="pixels",
+                demos=out / "demos", progress=False).train()
+    drop = lambda cp: {k: v for k, v in cp.items() if k != "wall_clock_s"}  # noqa: E731
+    assert [drop(c) for c in again["checkpoints"]] == [drop(c) for c in r["checkpoints"]]
+    from safetensors.torch import load_file
+
+    a, b = (load_file(str(d / "policies" / "step_0000000.safetensors"))
+            for d in (out, tmp_path / "again"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     with pytest.raises(ValueError, match="not available for the 'hilserl' agent"):
         Run("hil-serl", ENV, "smoke", 0, tmp_path / "h", track="pixels")
     with pytest.raises(W.WeightsError, match="no such file"):
