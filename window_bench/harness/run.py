@@ -295,7 +295,7 @@ class Run:
                  stage1_cache: str | os.PathLike | None = None):
         self.method = get_method(method)
         if h is not None:    # Tables 5/6: replay, agent and chunking all follow method.h
-            if self.method.agent != "qcfql":
+            if not agent_class(self.method.agent).follows_method_h:
                 raise ValueError(f"--h {h}: h is a run parameter of the QC-FQL methods, not of "
                                  f"{method!r} (agent {self.method.agent!r})")
             if isinstance(h, bool) or not isinstance(h, int) or not 1 <= h <= 100:
