@@ -368,8 +368,7 @@ def test_bench_run_on_the_pixel_track(tmp_path):
     assert saved["encoder"]["sha256"] and saved["encoder"]["command"].startswith("bench encoder")
     assert len(saved["checkpoints"]) == 1 and saved["checkpoints"][0]["episodes"] == 2
     # Determinism: the same seed again (on the same demonstrations) gives the same policy
-    # tensors and the same evaluation. (The files' own sha256 can differ: safetensors
-    # writes its metadata map in no fixed order.)
+    # tensors and the same evaluation.
     again = Run("qcfql-offline", ENV, "smoke", 0, tmp_path / "again", track="pixels",
                 demos=out / "demos", progress=False).train()
     drop = lambda cp: {k: v for k, v in cp.items() if k != "wall_clock_s"}  # noqa: E731

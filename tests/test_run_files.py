@@ -357,3 +357,19 @@ def test_one_bad_file_in_the_root_does_not_break_the_build(runs, tmp_path, capsy
     out, err = capsys.readouterr()
     assert "| WindowInstall-A-v0 | Ours (offline-only) (`qcfql-offline`) | smoke | 0 |" in out
     assert one_line(err).startswith(f"skipped lb/x/results.json: not readable JSON (NaN is not")
+
+
+def test_equal_states_give_byte_identical_files():
+    """safetensors writes its header from a hash map; dump_state sorts it, so the same state
+    always hashes the same (final_eval.policy_sha256 is reproducible)."""
+    import torch
+
+    from window_bench.harness import files as F
+
+    tree = {"w": torch.arange(12.0).reshape(3, 4), "b": torch.zeros(2),
+            "config": {"hidden": [256, 256], "lr": 3e-4, "name": "x"}}
+    meta = {"method": "qcfql", "env_id": "WindowInstall-A-v0", "seed": 0, "env_steps": 3000}
+    blobs = {F.dump_state(tree, "policy", meta) for _ in range(16)}
+    assert len(blobs) == 1
+    back, got = F.parse_state(blobs.pop(), "p.safetensors", "policy")
+    assert got == meta and torch.equal(back["w"], tree["w"])

@@ -127,7 +127,18 @@ def dump_state(tree, kind: str, meta: dict | None = None) -> bytes:
               "meta": json.dumps(_encode(meta or {}, {}, "meta"), allow_nan=False),
               "tree": json.dumps(_encode(tree, tensors, kind), allow_nan=False)}
     header["sha256"] = _content_sha256(header, tensors)
-    return save(tensors, metadata=header)
+    return _canonical(save(tensors, metadata=header))
+
+
+def _canonical(data: bytes) -> bytes:
+    """The same safetensors file with its JSON header in sorted key order: safetensors writes
+    the header from a hash map, so without this equal states could get different file
+    hashes (and ``final_eval.policy_sha256`` would not be reproducible)."""
+    n = int.from_bytes(data[:8], "little")
+    header = json.dumps(json.loads(data[8:8 + n]), sort_keys=True, separators=(",", ":"))
+    raw = header.encode()
+    raw += b" " * (-len(raw) % 8)     # the format pads the header to 8 bytes with spaces
+    return len(raw).to_bytes(8, "little") + raw + data[8 + n:]
 
 
 def parse_state(data: bytes, path, kind: str):
