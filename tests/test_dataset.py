@@ -254,3 +254,17 @@ def test_relative_data_path(tmp_path, episodes, monkeypatch):
     save_episodes(episodes, "wb/rel-v0", env_id=ENV_ID, obs_dim=OBS_DIM, data_path="rel/ds")
     assert (tmp_path / "rel" / "ds" / "wb" / "rel-v0" / "data" / "main_data.hdf5").is_file()
     assert len(load_episodes("wb/rel-v0", data_path="rel/ds")) == len(episodes)
+
+
+def test_code_permalink_only_for_a_web_remote(monkeypatch):
+    """A permalink is built only from an http(s) or ssh remote; a clone of a local folder
+    (CI's case) or a dirty tree gets none, never a path that looks like a link."""
+    from window_bench.data import dataset as D
+
+    for remote, commit, want in (
+            ("https://example.org/o/r.git", "abc", "https://example.org/o/r/tree/abc"),
+            ("git@example.org:o/r.git", "abc", "https://example.org/o/r/tree/abc"),
+            ("/work/main", "abc", None),
+            ("https://example.org/o/r.git", "abc-dirty", None)):
+        monkeypatch.setattr(D, "_git", lambda *a, r=remote: r)
+        assert D._permalink(commit) == want

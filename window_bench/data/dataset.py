@@ -79,12 +79,15 @@ def _git(*args: str) -> str | None:
 
 def _permalink(commit: str) -> str | None:
     """``<origin>/tree/<commit>`` for a clean, pushed-style checkout; None without a remote
-    or for uncommitted code (no link can point at it)."""
+    or for uncommitted code (no link can point at it), and for a remote that is a local
+    path (a clone of a folder on this machine has nothing to link to)."""
     url = _git("remote", "get-url", "origin")
     if not url or commit.endswith("-dirty") or commit == "unknown":
         return None
     if url.startswith("git@"):   # git@host:owner/repo.git -> https://host/owner/repo
         url = "https://" + url[4:].replace(":", "/", 1)
+    if not url.startswith(("https://", "http://")):
+        return None
     return f"{url.removesuffix('.git')}/tree/{commit}"
 
 
