@@ -373,3 +373,18 @@ def test_equal_states_give_byte_identical_files():
     assert len(blobs) == 1
     back, got = F.parse_state(blobs.pop(), "p.safetensors", "policy")
     assert got == meta and torch.equal(back["w"], tree["w"])
+
+
+def test_resume_on_a_new_directory_starts_the_run(tmp_path):
+    """README's main command passes --resume on a fresh machine: one command starts or
+    continues a run, so --resume into a new (or empty) directory starts it."""
+    from window_bench.harness.files import MANIFEST, RunDir
+
+    for out in (tmp_path / "new", tmp_path / "empty"):
+        if out.name == "empty":
+            out.mkdir()
+        rd = RunDir(out, {"method": "qcfql", "seed": 0}, resume=True)
+        try:
+            assert (out / MANIFEST).is_file()
+        finally:
+            rd.close()

@@ -34,17 +34,24 @@ def _env_id(value: str) -> str:
     return value
 
 
-def _int_at_least(lo: int):
-    """An argparse type: an integer >= ``lo``, else a one-line error naming the value."""
-    def parse(value: str) -> int:
+def checked_number(cast, ok, allowed: str):
+    """An argparse type: ``cast(value)`` that satisfies ``ok``, else a one-line error naming
+    the value and the ``allowed`` range (``">= 1"``, ``"in (0, 1]"``)."""
+    kind = "an integer" if cast is int else "a number"
+
+    def parse(value: str):
         try:
-            v = int(value)
+            v = cast(value)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {value!r}") from None
-        if v < lo:
-            raise argparse.ArgumentTypeError(f"must be >= {lo}, got {v}")
+            raise argparse.ArgumentTypeError(f"expected {kind}, got {value!r}") from None
+        if not ok(v):
+            raise argparse.ArgumentTypeError(f"must be {allowed}, got {v}")
         return v
     return parse
+
+
+def _int_at_least(lo: int):
+    return checked_number(int, lambda v: v >= lo, f">= {lo}")
 
 
 _positive = _int_at_least(1)

@@ -315,8 +315,6 @@ class RunDir:
                      "cannot be resumed safely)" if (self.path / "state.pt").exists() else ""
             raise RunFileError(f"--out {self.path}: not empty and not a window-bench run"
                                f"{legacy}; choose a new or empty directory")
-        if resume and not has_manifest:
-            raise RunFileError(f"--resume: {self.path} holds no run; start it without --resume")
         self._fd = None
         try:
             self.path.mkdir(parents=True, exist_ok=True)
@@ -329,10 +327,7 @@ class RunDir:
                 self.manifest = read_manifest(self.path)
                 self._check_identity(resume)
                 verify_files(self.path, manifest=self.manifest)
-            elif resume:
-                raise RunFileError(f"--resume: {self.path} holds no run; start it without "
-                                   f"--resume")
-            else:
+            else:   # a new run; with --resume too, so that one command starts or continues
                 self.manifest = {"format": MANIFEST_FORMAT, "run": self.identity, "files": {}}
                 self._write_manifest()
         except BaseException:

@@ -13,15 +13,9 @@ import sys
 
 def _number_in(upper: float):
     """A number in (0, upper]: checked by argparse, before any work."""
-    def parse(value: str) -> float:
-        try:
-            v = float(value)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {value!r}") from None
-        if not 0.0 < v <= upper:
-            raise argparse.ArgumentTypeError(f"{v} is outside (0, {upper}]")
-        return v
-    return parse
+    from window_bench.cli import checked_number
+
+    return checked_number(float, lambda v: 0.0 < v <= upper, f"in (0, {upper}]")
 
 
 def cmd_encoder_train(args) -> int:
