@@ -41,6 +41,8 @@ seeds = [0, 1]
     ('[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseed=[0]', "unknown key(s) seed"),
     ('profile = "smoke"', "declares no cells"),
     ('profile = [', "not valid TOML"),
+    ('eval_workers = 0\n[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseeds=[0]',
+     "eval_workers = 0; allowed: an integer in 1..64"),
 ])
 def test_bad_grid_is_one_line_error(tmp_path, text, message):
     with pytest.raises(GridError, match=None) as e:
@@ -70,6 +72,26 @@ def test_cell_names_h_and_overrides(tmp_path):
     assert argv[argv.index("--agent-config") + 1] == "alpha=30"
     assert argv[argv.index("--final-episodes") + 1] == "2"
     assert argv[argv.index("--final-seed-set") + 1] == "test"
+
+
+def test_eval_workers_reach_every_cell_command(tmp_path):
+    g = _grid(tmp_path, "eval_workers = 1\n" + GRID)
+    assert g.eval_workers == 1
+    argv = cell_command(g.cells[0], g, tmp_path, resume=True)
+    assert argv[argv.index("--eval-workers") + 1] == "1"
+    assert "--eval-workers" not in cell_command(g.cells[0], _grid(tmp_path, GRID), tmp_path,
+                                                resume=True)
+
+
+def test_only_selects_cells_by_name_and_rejects_a_pattern_matching_none(tmp_path):
+    from window_bench.harness.sweep import Sweep
+
+    g = _grid(tmp_path, GRID)
+    s = Sweep(g, tmp_path, only=["*/qcfql-smoke-s*"], progress=False)
+    assert sorted(c.name for c in s.grid.cells) == ["WindowInstall-A-v0/qcfql-smoke-s0",
+                                                    "WindowInstall-A-v0/qcfql-smoke-s1"]
+    with pytest.raises(GridError, match="--only \\*/sac\\* matches none of its 4 cells"):
+        Sweep(g, tmp_path, only=["*/sac*"])
 
 
 def test_schedule_starts_one_cell_per_stage1_group_first(tmp_path):

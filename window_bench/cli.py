@@ -280,7 +280,7 @@ def cmd_run(args) -> int:
                   track=args.track, encoder_weights=args.encoder_weights,
                   agent_config=parse_overrides(args.agent_config), h=args.h,
                   final_episodes=args.final_episodes, final_seed_set=args.final_seed_set,
-                  stage1_cache=args.stage1_cache)
+                  stage1_cache=args.stage1_cache, eval_workers=args.eval_workers)
     except (ValueError, FileExistsError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -305,8 +305,8 @@ def cmd_eval(args) -> int:
     from window_bench.harness.run import evaluate_policy_file
 
     try:
-        r = evaluate_policy_file(args.checkpoint, args.episodes, env_id=args.env,
-                                 seed_set=args.seed_set)
+        r = evaluate_policy_file(args.checkpoint, args.episodes, args.eval_workers,
+                                 env_id=args.env, seed_set=args.seed_set)
     except (FileNotFoundError, ValueError) as e:   # a missing, foreign or corrupt file
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -341,7 +341,7 @@ def cmd_sweep(args) -> int:
     try:
         sweep = Sweep(load_grid(args.grid), args.out, workers=args.workers,
                       address=args.address, progress=not args.no_progress,
-                      stage1_cache=not args.no_stage1_cache)
+                      stage1_cache=not args.no_stage1_cache, only=args.only)
     except GridError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -495,6 +495,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--stage1-cache", default=None, metavar="DIR",
                    help="share Stage I with runs of the same agent config, h, demos and seed "
                         "through this cache directory (bench sweep sets it)")
+    r.add_argument("--eval-workers", type=_positive, default=None, metavar="N",
+                   help="evaluation processes per checkpoint (default: the profile's; 1 "
+                        "evaluates in the training process, so a run uses one core)")
     r.set_defaults(func=cmd_run)
     e = sub.add_parser("eval", help="evaluate a saved policy (interventions off)")
     e.add_argument("checkpoint", help="a policies/step_*.safetensors file of a run")
@@ -504,6 +507,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", type=_out_file, help="write the summary to this JSON file")
     e.add_argument("--seed-set", choices=sorted(SEED_SETS), default="dev",
                    help="evaluation seeds: dev (tuning, default) or test (reported numbers)")
+    e.add_argument("--eval-workers", type=_positive, default=2, metavar="N",
+                   help="evaluation processes (1: in this process)")
     e.set_defaults(func=cmd_eval)
     lb = sub.add_parser("leaderboard", help="regenerate the leaderboard from raw run files")
     lb.add_argument("--add", nargs="+", metavar="RUN_DIR", help="first copy these finished "
@@ -519,6 +524,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--address", default=None,
                     help="join an existing Ray cluster (e.g. 127.0.0.1:6379 after "
                          "`ray start --head`); None: start one on this machine")
+    sw.add_argument("--only", nargs="+", metavar="GLOB", default=None,
+                    help="run only the cells whose name (<env>/<run>, as in the progress "
+                         "view) matches one of these shell patterns, e.g. '*/qcfql-cpu-s*'")
     sw.add_argument("--no-progress", action="store_true", help="one line per finished cell only")
     sw.add_argument("--no-stage1-cache", action="store_true",
                     help="every cell computes its own Stage I (to measure what the cache saves)")

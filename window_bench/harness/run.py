@@ -292,7 +292,8 @@ class Run:
                  save_every_s: float = 60.0, acceptance_noise: dict | None = None,
                  agent_config: dict | None = None, h: int | None = None,
                  final_episodes: int | None = None, final_seed_set: str = "dev",
-                 stage1_cache: str | os.PathLike | None = None):
+                 stage1_cache: str | os.PathLike | None = None,
+                 eval_workers: int | None = None):
         self.method = get_method(method)
         if h is not None:    # Tables 5/6: replay, agent and chunking all follow method.h
             if not agent_class(self.method.agent).follows_method_h:
@@ -308,6 +309,13 @@ class Run:
         self.final_episodes, self.final_seed_set = final_episodes, final_seed_set
         self.stage1_cache = stage1_cache
         self.profile = get_profile(profile)
+        if eval_workers is not None:    # evaluation processes; results do not depend on it
+            if isinstance(eval_workers, bool) or not isinstance(eval_workers, int) \
+                    or not 1 <= eval_workers <= 64:
+                raise ValueError(f"--eval-workers {eval_workers!r}; allowed: an integer in 1..64")
+            import dataclasses
+
+            self.profile = dataclasses.replace(self.profile, eval_workers=eval_workers)
         self.agent_cls = agent_class(self.method.agent)
         self._init_track(track, encoder_weights)
         import window_bench

@@ -43,6 +43,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import fnmatch
 import itertools
 import json
 import os
@@ -58,7 +59,8 @@ from window_bench.harness.evaluation import atomic_write_text
 from window_bench.harness.methods import get_method, get_profile
 from window_bench.harness.seeds import SEED_SETS
 
-GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "train", "evaluate"}
+GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "eval_workers",
+             "train", "evaluate"}
 TRAIN_KEYS = {"methods", "envs", "seeds", "h", "agent_config"}
 EVALUATE_KEYS = {"method", "env", "seeds", "on", "h", "agent_config"}
 LOGS = "sweep-logs"      # OUT/sweep-logs/<cell>.log and .json: nothing of ours in a run directory
@@ -117,6 +119,7 @@ class Grid:
     operator: str
     cells: tuple[Cell, ...]
     table: int | None = None
+    eval_workers: int | None = None      # None: the profile's (1: a cell uses one core)
 
 
 def _fail(path, msg: str):
@@ -157,6 +160,11 @@ def load_grid(path: str | os.PathLike) -> Grid:
     if seed_set not in SEED_SETS:
         _fail(path, f"seed_set = {seed_set!r}; allowed: {', '.join(SEED_SETS)}")
     operator = doc.get("operator", "average")
+    eval_workers = doc.get("eval_workers")
+    if eval_workers is not None and (isinstance(eval_workers, bool) or
+                                     not isinstance(eval_workers, int) or
+                                     not 1 <= eval_workers <= 64):
+        _fail(path, f"eval_workers = {eval_workers!r}; allowed: an integer in 1..64")
 
     def env_ok(block):
         def check(e):
@@ -230,7 +238,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
         _fail(path, "declares no cells (add a [[train]] or [[evaluate]] block)")
     unique = tuple(dict.fromkeys(cells))
     return Grid(doc.get("name", path.stem), path, profile, M, seed_set, operator, unique,
-                doc.get("table"))
+                doc.get("table"), eval_workers)
 
 
 # ---------------------------------------------------------------------------- cell state
@@ -288,12 +296,13 @@ def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool,
     if cell.on is not None:
         return bench + ["eval", str(final_policy(cell.train_cell.path(out))), "--env", cell.on,
                         "--episodes", str(grid.M), "--seed-set", grid.seed_set,
-                        "--out", str(cell.path(out))]
+                        "--out", str(cell.path(out))] + _eval_workers(grid)
     argv = bench + ["run", "--method", cell.method, "--env", cell.env_id,
                     "--profile", cell.profile, "--seed", str(cell.seed),
                     "--out", str(cell.path(out)), "--operator", grid.operator,
                     "--demos", str(demos_dir(cell, grid, out)),
                     "--final-episodes", str(grid.M), "--final-seed-set", grid.seed_set]
+    argv += _eval_workers(grid)
     if stage1_cache:
         argv += ["--stage1-cache", str(out / "stage1_cache")]
     if cell.h is not None:
@@ -302,6 +311,10 @@ def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool,
         argv += ["--agent-config", *(f"{k}={json.dumps(list(v) if isinstance(v, tuple) else v)}"
                                      for k, v in cell.agent_config)]
     return argv + (["--resume"] if resume else [])
+
+
+def _eval_workers(grid: Grid) -> list[str]:
+    return [] if grid.eval_workers is None else ["--eval-workers", str(grid.eval_workers)]
 
 
 def demos_command(cell: Cell, grid: Grid, out: Path) -> list[str]:
@@ -374,7 +387,15 @@ class Sweep:
     """Runs a grid's cells on Ray (see the module docstring)."""
 
     def __init__(self, grid: Grid, out: str | os.PathLike, workers: int | None = None,
-                 address: str | None = None, progress: bool = True, stage1_cache: bool = True):
+                 address: str | None = None, progress: bool = True, stage1_cache: bool = True,
+                 only: list[str] | None = None):
+        if only:     # a subset of the grid: cells whose name matches a pattern
+            cells = tuple(c for c in grid.cells if any(fnmatch.fnmatchcase(c.name, pattern)
+                                                       for pattern in only))
+            if not cells:
+                raise GridError(f"{grid.path}: --only {' '.join(only)} matches none of its "
+                                f"{len(grid.cells)} cells (e.g. {grid.cells[0].name})")
+            grid = dataclasses.replace(grid, cells=cells)
         self.grid, self.out = grid, Path(out)
         self.stage1_cache = stage1_cache
         self.address = address

@@ -1,0 +1,75 @@
+"""Commit every finished cell's raw files under a sweep root, so a long grid loses nothing
+when the session running it is cut off (the cells themselves resume with ``bench sweep``).
+
+    python experiments/commit_finished.py [ROOT]          # default leaderboard/runs
+    while sleep 300; do python experiments/commit_finished.py; done   # beside a sweep
+
+A training cell is finished when its ``results.json`` has a final evaluation. What is
+committed: ``results.json``, ``checkpoints.csv``, ``learning_curve.png``, ``manifest.json``,
+the final policy (acting weights only, with its sha256 in the manifest and in
+``final_eval.policy_sha256``) and the sweep's ``sweep-logs/<cell>.json`` (exit code, wall
+clock). Never the training state, replay, TensorBoard events or intermediate policies
+(``.gitignore``). An evaluation cell (Table 7) is its ``<env>/<run>.json``.
+"""
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+KEEP = ("results.json", "checkpoints.csv", "learning_curve.png", "manifest.json")
+
+
+def finished_files(root: Path) -> list[Path]:
+    files = []
+    for res in sorted(root.glob("WindowInstall-*/*/results.json")):
+        run = res.parent
+        try:
+            r = json.loads(res.read_text())
+        except ValueError:
+            continue
+        fe = r.get("final_eval") or {}
+        if not fe.get("policy"):
+            continue
+        files += [run / n for n in KEEP if (run / n).exists()] + [run / fe["policy"]]
+        log = root / "sweep-logs" / f"{run.parent.name}" / f"{run.name}.json"
+        files += [log] if log.exists() else []
+    for ev in sorted(root.glob("WindowInstall-*/*.json")):          # evaluation-only cells (Table 7)
+        files.append(ev)
+    return files
+
+
+def git(*args: str) -> subprocess.CompletedProcess:
+    for attempt in range(20):          # another process may hold .git/index.lock briefly
+        p = subprocess.run(["git", *args], capture_output=True, text=True)
+        if "index.lock" not in p.stderr:
+            return p
+        time.sleep(3)
+    return p
+
+
+def main() -> int:
+    root = Path(sys.argv[1] if len(sys.argv) > 1 else "leaderboard/runs")
+    files = [str(f) for f in finished_files(root)]
+    if not files:
+        return 0
+    changed = git("status", "--porcelain", "--ignored", "--", *files).stdout.split("\n")
+    paths = sorted({line[3:] for line in changed if line.strip()})
+    if not paths:
+        return 0
+    p = git("add", "-f", "--", *paths)
+    if p.returncode:
+        print(p.stderr, file=sys.stderr)
+        return 1
+    n = len(root.parts)
+    cells = sorted({"/".join(Path(x).parts[n:n + 2]).removesuffix(".json") for x in paths
+                    if "sweep-logs" not in x})
+    msg = "grid: raw files of " + ", ".join(cells)
+    p = git("commit", "-q", "-m", msg, "--", *paths)
+    print(p.stdout + p.stderr if p.returncode else msg)
+    return p.returncode
+
+
+if __name__ == "__main__":
+    sys.exit(main())
