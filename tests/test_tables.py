@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _results(root: Path, method: str, env: str, seed: int, success: float, *, h=None,
-             seed_set="test", M=100, overrides=None, episodes=None, cycle=25.0):
+             seed_set="test", M=100, overrides=None, episodes=None, cycle=25.0, track=None):
     """A results.json as bench run writes it (the fields bench tables reads)."""
     m = METHODS[method].as_dict()
     if h is not None:
@@ -32,7 +32,9 @@ def _results(root: Path, method: str, env: str, seed: int, success: float, *, h=
          "checkpoints": [], "train_episodes": episodes or [],
          "eval_seeds": [500000, 500000 + M - 1], "final_eval": fe,
          "provenance": {"git_commit": "unknown"}}
-    tag = "".join(f"-{a}{b}" for a, b in (overrides or {}).items())
+    if track is not None:           # files from before the track setting have none: state
+        r["track"] = track
+    tag = "".join(f"-{a}{b}" for a, b in (overrides or {}).items()) + (f"-{track}" if track else "")
     d = root / env / f"{method}{'' if h is None else f'-h{h}'}{tag}-smoke-{seed_set}-s{seed}"
     d.mkdir(parents=True)
     (d / "results.json").write_text(json.dumps(r))
@@ -131,3 +133,44 @@ def test_table7_from_evaluation_cells(tmp_path):
     t7 = build(runs, tmp_path / "out", figures=False)["table7.md"]
     row = next(ln for ln in t7.splitlines() if ln.startswith("| B | 0.6x0.6"))
     assert "**93**" in row and "90 · 96" in row and "| 87 [79, 92] |" in row
+
+
+def test_state_and_pixel_runs_of_one_method_are_different_rows(tmp_path):
+    """The track is part of a row's identity: a state and a pixel run of the same method,
+    seed and profile never share a cell, each row names its track, and the caption spells
+    the state track out as privileged state."""
+    runs = tmp_path / "runs"
+    _results(runs, "qcfql-offline", "WindowInstall-A-v0", 0, 0.9)            # no field: state
+    _results(runs, "qcfql-offline", "WindowInstall-A-v0", 1, 0.7, track="state")
+    _results(runs, "qcfql-offline", "WindowInstall-A-v0", 0, 0.2, track="pixels")
+    rows = load_runs(runs)
+    assert sorted((k.track, [s.seed for s in v]) for k, v in rows.items()) == \
+        [("pixels", [0]), ("state", [0, 1])]
+    t2 = build(runs, tmp_path / "out", figures=False)["table2.md"]
+    lines = [ln for ln in t2.splitlines() if ln.startswith("| Ours (offline-only)")]
+    assert len(lines) == 2
+    state, pixels = lines                       # the state row first
+    assert "| state, smoke, M = 100 | 2 |" in state and "**80**" in state
+    assert "| pixels, smoke, M = 100 | 1 |" in pixels and "**20**" in pixels
+    assert "`state` = privileged state" in t2 and "`pixels` = the paper's observation" in t2
+
+
+def test_leaderboard_names_the_track_and_keeps_tracks_apart(tmp_path):
+    from window_bench.harness.leaderboard import build as leaderboard, check_results, run_dest
+
+    runs = tmp_path / "runs"
+    d_state = _results(runs, "qcfql-offline", "WindowInstall-A-v0", 0, 0.9)
+    d_pix = _results(runs, "qcfql-offline", "WindowInstall-A-v0", 0, 0.2, track="pixels")
+    r_state, r_pix = (check_results(d / "results.json") for d in (d_state, d_pix))
+    assert run_dest(r_state, "lb").name == "qcfql-offline-smoke-s0"
+    assert run_dest(r_pix, "lb").name == "qcfql-offline-pixels-smoke-s0"
+    body = leaderboard(runs, readme=None, snippet=None)
+    rows = [ln for ln in body.splitlines() if "(`qcfql-offline`)" in ln]
+    assert rows[0].startswith("| state | WindowInstall-A-v0 |") and "| 90 [" in rows[0]
+    assert rows[1].startswith("| pixels | WindowInstall-A-v0 |") and "| 20 [" in rows[1]
+    assert "`state` = privileged state" in body
+    bad = json.loads((d_pix / "results.json").read_text())
+    bad["track"] = "depth"
+    (d_pix / "results.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match="track: 'depth' is not one of"):
+        check_results(d_pix / "results.json")

@@ -3,7 +3,9 @@
 ``bench leaderboard`` reads every ``results.json`` under ``leaderboard/runs`` (copied there
 from ``bench run`` output directories with :func:`add_run`), checks its schema, and writes
 ``leaderboard/README.md`` and ``docs/snippets/leaderboard.md``: one row per run in the layout
-of the paper's Tables 2 and 3 (final success with its Wilson interval, online interaction
+of the paper's Tables 2 and 3, led by the run's observation track (``state``: the privileged
+state; ``pixels``: the paper's camera views; runs of different tracks are sorted apart and
+never share a directory name) (final success with its Wilson interval, online interaction
 time, time-to-95, cycle time, takeover minutes) plus the profile and the compute wall clock,
 so that a ``cpu``-profile number is never mistaken for a ``paper`` one.
 
@@ -38,6 +40,7 @@ def results_schema() -> dict:
     """JSON Schema of the ``results.json`` fields the leaderboard reads."""
     import window_bench
     from window_bench.harness.methods import PROFILES
+    from window_bench.pixels.track import TRACKS
 
     opt = lambda s: {"anyOf": [s, {"type": "null"}]}  # noqa: E731
     rate = {"type": "number", "minimum": 0, "maximum": 1}
@@ -63,6 +66,7 @@ def results_schema() -> dict:
             "profile": {"type": "object", "required": ["name"],
                         "properties": {"name": {"enum": list(PROFILES)}}},
             "seed": count,
+            "track": {"enum": list(TRACKS)},
             "agent_config_overrides": opt({
                 "type": "object", "propertyNames": {"pattern": r"^[A-Za-z_][A-Za-z0-9_]*$"},
                 "additionalProperties": {"anyOf": [{"type": ["number", "boolean"]}, safe,
@@ -121,8 +125,11 @@ def check_results(path: str | os.PathLike) -> dict:
 
 
 def run_dest(results: dict, root: str | os.PathLike) -> Path:
-    """``root/<env>/<method><overrides>-<profile>-s<seed>``, checked to stay inside ``root``."""
+    """``root/<env>/<method><overrides>[-pixels]-<profile>-s<seed>``, checked to stay inside
+    ``root``: a pixel-track run never lands on the state-track run of the same method and seed."""
     tag = "".join(f"-{k}{v}" for k, v in (results.get("agent_config_overrides") or {}).items())
+    if _track(results) != "state":
+        tag += f"-{_track(results)}"
     name = f"{results['method']['name']}{tag}-{results['profile']['name']}-s{results['seed']}"
     dest = Path(root) / results["env_id"] / name
     if not _SAFE_NAME.match(name) or not dest.resolve().is_relative_to(Path(root).resolve()):
@@ -149,6 +156,11 @@ def add_run(run_dir: str | os.PathLike, root: str | os.PathLike = "leaderboard/r
     return dest
 
 
+def _track(results: dict) -> str:
+    """The run's observation track; results files from before the setting are ``state``."""
+    return results.get("track", "state")
+
+
 def _pct(x) -> str:
     return "–" if x is None else f"{100 * x:.0f}"
 
@@ -161,13 +173,13 @@ def table(results: list[dict]) -> str:
     from window_bench.harness.seeds import seed_set_of
 
     order = {name: i for i, name in enumerate(METHODS)}
-    rows = sorted(results, key=lambda r: (r["env_id"], r["profile"]["name"],
+    rows = sorted(results, key=lambda r: (_track(r) != "state", r["env_id"], r["profile"]["name"],
                                          order.get(r["method"]["name"], 99), r["seed"]))
-    lines = ["| env | method | profile | seed | final success (%) [95 % Wilson] | M, seeds ² | "
-             "time-to-95 (sim. h) | cycle time (s) | takeover (min) |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    runs = ["| env | method | profile | seed | online interaction (sim. h) | wall clock (h) | "
-            "commit ¹ |", "|---|---|---|---|---|---|---|"]
+    lines = ["| track ³ | env | method | profile | seed | final success (%) [95 % Wilson] | "
+             "M, seeds ² | time-to-95 (sim. h) | cycle time (s) | takeover (min) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    runs = ["| track ³ | env | method | profile | seed | online interaction (sim. h) | "
+            "wall clock (h) | commit ¹ |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         f, m = r["final"], r["method"]
         fe = r.get("final_eval") or {**f, "seed_set": seed_set_of(r["eval_seeds"][0])}
@@ -178,7 +190,7 @@ def table(results: list[dict]) -> str:
         h = (f", h={m['h']}" if m["name"] in METHODS
              and m.get("h", METHODS[m["name"]].h) != METHODS[m["name"]].h else "")
         extra = "".join(f", {k}={v}" for k, v in (r.get("agent_config_overrides") or {}).items())
-        who = f"| {r['env_id']} | {m['label']} (`{m['name']}`{h}{extra}) | " \
+        who = f"| {_track(r)} | {r['env_id']} | {m['label']} (`{m['name']}`{h}{extra}) | " \
               f"{r['profile']['name']} | {r['seed']} |"
         lines.append(
             f"{who} {_pct(fe['success_rate'])} [{_pct(lo)}, {_pct(hi)}] | "
@@ -206,7 +218,11 @@ def build(root: str | os.PathLike = "leaderboard/runs", readme: str | os.PathLik
             "² M rollouts on the final checkpoint, interventions off, on the `dev` seeds "
             "(100000…, the seeds our QC-FQL choices were tuned on: optimistic by "
             "construction) or the held-out `test` seeds (500000…); see "
-            "`window_bench/harness/seeds.py`.") if results else "No runs yet."
+            "`window_bench/harness/seeds.py`.\n"
+            "³ Observation track: `state` = privileged state (the 52-float simulator state, "
+            "with the panel's exact pose relative to the seat); `pixels` = the paper's wrist "
+            "and side RGB views through a frozen ResNet-10 plus 18 proprioceptive values "
+            "(docs/pixels.md).") if results else "No runs yet."
     if snippet is not None:
         atomic_write_text(snippet, body + "\n")
     if readme is not None:

@@ -3,8 +3,9 @@
 Inputs are only the raw files ``bench run`` / ``bench sweep`` wrote under a runs root:
 ``<env>/<run>/results.json`` of training cells and ``<ood env>/<run>.json`` (``bench eval``
 output) of Table 7's evaluation-only cells, whose training cell is ``<env>/<run>``. Cells are grouped into table rows by what was run (method,
-h, agent-config overrides, profile, evaluation seed set, M); within a row the seeds are the
-samples. Per cell we print our mean over seeds with a 95 % bootstrap interval across seeds,
+h, agent-config overrides, observation track, profile, evaluation seed set, M); within a row the
+seeds are the samples, so a cell never mixes the privileged-state and the pixel track: each
+row's *run* column names its track. Per cell we print our mean over seeds with a 95 % bootstrap interval across seeds,
 the per-seed values, n, and the paper's number beside it
 (:file:`paper_tables.csv`, transcribed from the paper).
 
@@ -39,6 +40,7 @@ import numpy as np
 from window_bench.harness.evaluation import atomic_write, atomic_write_text
 from window_bench.harness.methods import METHODS
 from window_bench.harness.seeds import seed_set_of
+from window_bench.pixels.track import TRACK_LABELS
 
 PAPER_CSV = Path(__file__).with_name("paper_tables.csv")
 SETTINGS = {"A": "WindowInstall-A-v0", "B": "WindowInstall-B-v0"}
@@ -218,7 +220,7 @@ def _label(key: RowKey) -> str:
 def _order(key: RowKey):
     names = list(METHODS)
     return (names.index(key.method) if key.method in names else 99, key.h, key.overrides,
-            key.profile, key.seed_set != "test", key.M, key.track)
+            key.track != "state", key.profile, key.seed_set != "test", key.M)
 
 
 def _caption(keys, rows) -> str:
@@ -240,7 +242,8 @@ def _caption(keys, rows) -> str:
     parts.append("final evaluation: " + "; ".join(
         f"M = {M} on the {'held-out test' if s == 'test' else 'development'} seeds"
         for s, M in sets))
-    parts.append("observation track: " + ", ".join(sorted({k.track for k in keys})))
+    parts.append("observation track (the *run* column's first word): " + "; ".join(
+        f"`{t}` = {TRACK_DESCRIPTIONS.get(t, t)}" for t in sorted({k.track for k in keys})))
     dev = [k for k in keys if k.seed_set == "dev"]
     text = ". ".join(parts) + "."
     if dev:
@@ -256,8 +259,16 @@ def _group_rows(rows, setting: str, only=None, panel: str = "0.5x0.5"):
     return sorted(keys, key=_order)
 
 
+TRACK_DESCRIPTIONS = {
+    "state": f"{TRACK_LABELS['state']} (the 52-float simulator state, with the panel's exact "
+             "pose relative to the seat: not what the paper's agents observe)",
+    "pixels": "the paper's observation: wrist and side RGB views (128 x 128) through the frozen "
+              "ResNet-10, and 18 proprioceptive values (see [the pixel track](../pixels.md))"}
+
+
 def _mark(key: RowKey) -> str:
-    return f"{key.profile}, M = {key.M}" + (", *dev*" if key.seed_set == "dev" else "")
+    return (f"{key.track}, {key.profile}, M = {key.M}"
+            + (", *dev*" if key.seed_set == "dev" else ""))
 
 
 def _table_main(rows, paper, table: int, setting: str) -> tuple[str, list]:
@@ -397,7 +408,7 @@ def plot_curves(rows, setting: str, path_png: Path, path_svg: Path) -> list[RowK
                 warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN early points
                 mean, lo, hi = _band(curves[:, a])
             label = (f"{METHODS[k.method].label}"
-                     f"{''.join(f', {a}={b}' for a, b in k.overrides)} ({k.profile}, "
+                     f"{''.join(f', {a}={b}' for a, b in k.overrides)} ({k.track}, {k.profile}, "
                      f"n={len(ss)}{', dev' if k.seed_set == 'dev' else ''})")
             axes[a].plot(x, scales[a] * mean, color=f"C{i}", label=label)
             axes[a].fill_between(x, scales[a] * lo, scales[a] * hi, color=f"C{i}", alpha=0.2)
@@ -431,15 +442,17 @@ TITLES = {
 COLUMNS = """\
 How to read a cell: **mean over seeds** [95 % bootstrap interval across seeds], then the
 per-seed values in seed order (IQM added from 5 seeds). *n* is the number of seeds. *run*
-names the profile and the final evaluation's M. Success and the stage-wise rates are measured
+names the observation track (`state`: privileged state; `pixels`: the paper's two camera
+views and proprioception), the profile and the final evaluation's M. Success and the stage-wise rates are measured
 on the final checkpoint with interventions off. *paper* is the paper's number (its Wilson
 interval where it gives one), from `window_bench/harness/paper_tables.csv`; a row with agent-config
 overrides is our variant and has no paper number."""
 
 PROTOCOL = """\
 What our protocol differs in: the budget and network sizes of the profile named in each
-row (the paper's is the `paper` profile: 3.0 simulated h, 4 x 512 MLPs, UTD 2); the state
-observation track unless a row says otherwise; our QC-FQL departures (noise z = 0 for acting,
+row (the paper's is the `paper` profile: 3.0 simulated h, 4 x 512 MLPs, UTD 2); the
+observation track each row names (the paper's agents see pixels; a `state` row observes the
+privileged state, an easier task); our QC-FQL departures (noise z = 0 for acting,
 bootstrapping and distillation, policy averaging, the flow prior on accepted episodes without
 takeover steps; see [the QC-FQL page](../qcfql.md)); and the evaluation seeds: reported numbers
 use the held-out test seeds (see [Results](index.md))."""
@@ -477,6 +490,12 @@ Generated by `bench tables` from the raw run files under `{root}`. Do not edit b
 Each page regenerates one of the paper's tables with the paper's numbers beside ours:
 
 {links}
+
+Every row names its observation track in its *run* column: `state` is the **privileged
+state** (the 52-float simulator state, including the panel's exact pose relative to the
+seat), `pixels` the paper's observation (two 128 x 128 RGB views through a frozen ResNet-10
+and 18 proprioceptive values, [the pixel track](../pixels.md)). The two tracks never share a
+row, and the paper's numbers are pixel-track numbers.
 
 ## The evaluation seeds protocol
 

@@ -14,8 +14,7 @@ import dataclasses
 import gymnasium as gym
 import numpy as np
 
-from window_bench.pixels.encoder import PROPRIO_DIM
-
+# No torch import at module level: `bench tables` / `bench leaderboard` read TRACK_LABELS.
 TRACKS = ("state", "pixels")
 TRACK_LABELS = {"state": "privileged state", "pixels": "pixels (2 x RGB 128² + proprioception)"}
 #: Agent kind on the state track -> its kind on the pixel track (harness/methods.py AGENTS).
@@ -85,5 +84,7 @@ def pixel_demos(demos: list, env_id: str, backbone, progress: bool = False) -> l
 def proprio_normalizer(pixel_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean and std of the proprioception (the last 18 values) of pixel observations: the
     pixel agent's fixed normaliser, computed from the demonstrations like the state track's."""
+    from window_bench.pixels.encoder import PROPRIO_DIM
+
     p = np.asarray(pixel_obs, np.float64)[:, -PROPRIO_DIM:]
     return p.mean(0), p.std(0)
