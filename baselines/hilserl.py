@@ -134,6 +134,10 @@ class HILSERLConfig:
         Probability of a uniformly drawn vacuum command when acting stochastically
         (``act(..., deterministic=False)``); HIL-SERL's agent explores the gripper only
         through interventions (0).
+    offline_steps : int or None
+        Stage I gradient steps (offline pretraining on D_demo only). None: the profile's
+        ``offline_steps`` (the paper's protocol); 0: no Stage I, the learner starts with the
+        online phase on 1:1 demo/online batches (HIL-SERL's and RLPD's own protocol).
     """
 
     hidden: tuple[int, ...] = (256, 256)
@@ -158,6 +162,7 @@ class HILSERLConfig:
     obs_clip: float | None = 10.0
     vacuum_head: str = "discrete"
     vacuum_epsilon: float = 0.0
+    offline_steps: int | None = None
 
     @property
     def h(self) -> int:
@@ -220,6 +225,8 @@ class HILSERLConfig:
         if self.vacuum_head not in VACUUM_HEADS:
             raise ValueError(f"vacuum_head = {self.vacuum_head!r} is not allowed: choose from "
                              f"{VACUUM_HEADS}")
+        if self.offline_steps is not None:
+            _check_int("offline_steps", self.offline_steps, 0)
         if not (isinstance(self.vacuum_epsilon, numbers.Real)
                 and 0.0 <= self.vacuum_epsilon <= 1.0):
             raise ValueError(f"vacuum_epsilon = {self.vacuum_epsilon!r} is not allowed: it "
@@ -431,6 +438,11 @@ class HILSERLAgent(Agent):
     def make_config(cls, h: int, profile, overrides: dict) -> HILSERLConfig:
         return with_overrides(HILSERLConfig(hidden=tuple(profile.hidden),
                                             batch_size=profile.batch_size), overrides)
+
+    @property
+    def offline_steps(self) -> int | None:
+        """Stage I gradient steps for the harness: the config's, None for the profile's."""
+        return self.config.offline_steps
 
     def learn(self, sample) -> tuple[dict[str, float], int]:
         """One :meth:`update`: ``critic_actor_ratio`` critic steps, each on a fresh batch."""
@@ -804,4 +816,4 @@ def _state_config(state: dict) -> dict:
     """The config of a :meth:`HILSERLAgent.state_dict`; states saved before the grasp critic
     and the observation clip were added are what they were: Gaussian vacuum, no clip."""
     return {"vacuum_head": "gaussian", "obs_clip": None, "vacuum_epsilon": 0.0,
-            **state["config"]}
+            "offline_steps": None, **state["config"]}

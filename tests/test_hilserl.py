@@ -97,6 +97,9 @@ def params(module):
     ({"vacuum_head": "bernoulli"}, "vacuum_head"),
     ({"vacuum_epsilon": 1.5}, "vacuum_epsilon"),
     ({"obs_clip": 0.0}, "obs_clip"),
+    ({"offline_steps": -1}, "offline_steps"),
+    ({"offline_steps": 1.5}, "offline_steps"),
+    ({"offline_steps": True}, "offline_steps"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -377,10 +380,11 @@ def test_states_saved_before_the_grasp_critic_load_as_gaussian():
     old = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(16,), batch_size=32,
                                                      vacuum_head="gaussian", obs_clip=None))
     state = old.state_dict()
-    for key in ("vacuum_head", "obs_clip", "vacuum_epsilon"):
+    for key in ("vacuum_head", "obs_clip", "vacuum_epsilon", "offline_steps"):
         del state["config"][key]
     restored = HILSERLAgent.from_state_dict(state)
     assert restored.config.vacuum_head == "gaussian" and restored.config.obs_clip is None
+    assert restored.offline_steps is None   # those runs had the profile's Stage I
     x = np.ones((3, OBS_DIM), np.float32)
     np.testing.assert_array_equal(restored.act(x, deterministic=True),
                                   old.act(x, deterministic=True))
@@ -525,3 +529,20 @@ def test_pretrain_collect_update_evaluate(env, demo):
     evaluation = rollout(env, lambda o: agent.act(o, deterministic=True)[0], seed=100,
                          provenance="policy", max_steps=15)
     assert evaluation.T == 15 and np.all(np.abs(evaluation.actions) <= 1.0)
+
+
+def test_offline_steps_zero_skips_stage_i_in_the_harness(tmp_path, demos_root):
+    """``--agent-config offline_steps=0`` (HIL-SERL's and RLPD's own protocol): no Stage I
+    gradient step, checkpoint 0 evaluates the initial policy, online learning then runs on
+    1:1 batches (the default, the profile's Stage I, runs in tests/test_harness.py)."""
+    from window_bench.harness.run import Run
+
+    run = Run("hil-serl", "WindowInstall-A-v0", "smoke", 0, tmp_path / "run", demos=demos_root,
+              progress=False, agent_config={"offline_steps": 0}, eval_workers=1)
+    assert run.agent_cls.make_config(1, run.profile, run.agent_config).offline_steps == 0
+    r = run.train()
+    assert r["hyperparameters"]["offline_steps"] == 0
+    assert [c["env_steps"] for c in r["checkpoints"]] == [0, 200, 400]
+    assert r["checkpoints"][0]["grad_steps"] == 0 and r["checkpoints"][0]["episodes"] == 2
+    # Smoke: UTD 0.05 over the 300 online steps = 15 credits, 2 critic steps per call.
+    assert r["final"]["grad_steps"] == 2 * 8

@@ -1,0 +1,83 @@
+"""Q statistics of a ``hil-serl`` run directory: the critics on the demonstrations against
+what any return can be, the actor against the demonstrations, the grasp critic, and the
+learner's ``q_mean`` / ``target_mean`` over gradient steps (its TensorBoard scalars).
+
+The reward is 1 on acceptance and 0 otherwise and acceptance terminates, so no discounted
+return exceeds 1; a critic far above 1 is extrapolating. Reads the run's last saved state
+(``state.safetensors``, checked against its manifest), so it also works on a running run.
+
+    python experiments/sanity/hilserl_run_qstats.py /tmp/hil_nooff --demos runs/sanity/demos_s0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from hilserl_stage1 import q_check  # noqa: E402  (same statistics as right after Stage I)
+
+from baselines.hilserl import HILSERLAgent  # noqa: E402
+from window_bench.envs.env import VACUUM_THRESHOLD  # noqa: E402
+from window_bench.harness.files import load_state, verify_files  # noqa: E402
+from window_bench.installer.demos import load_demos  # noqa: E402
+
+
+def tb_scalars(run_dir: Path, tags=("loss/q_mean", "loss/target_mean", "loss/grasp_q_mean",
+                                    "loss/temperature", "loss/entropy")) -> dict:
+    """``{tag: [(grad_step, value), ...]}`` thinned to at most 12 points per tag."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir / "tb"), size_guidance={"scalars": 0})
+    acc.Reload()
+    out = {}
+    for tag in tags:
+        if tag in acc.Tags()["scalars"]:
+            ev = acc.Scalars(tag)
+            idx = np.unique(np.linspace(0, len(ev) - 1, min(12, len(ev))).astype(int))
+            out[tag] = [(int(ev[i].step), round(float(ev[i].value), 4)) for i in idx]
+    return out
+
+
+def main(argv=None) -> dict:
+    torch.set_num_threads(1)
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("run_dir", type=Path)
+    p.add_argument("--demos", type=Path, default=None, help="Minari root (default: RUN/demos)")
+    p.add_argument("--env", default="WindowInstall-A-v0")
+    p.add_argument("--n-demos", type=int, default=50)
+    a = p.parse_args(argv)
+    verify_files(a.run_dir, ["state.safetensors"])
+    state, _ = load_state(a.run_dir / "state.safetensors", "state")
+    agent = HILSERLAgent.from_state_dict(state["agent"])
+    demos = load_demos(a.demos or a.run_dir / "demos", a.env, "average")[:a.n_demos]
+    obs = np.concatenate([ep.observations[:-1] for ep in demos]).astype(np.float32)
+    demo_a = np.concatenate([ep.actions for ep in demos])
+    pol_a = agent.act(obs, deterministic=True)[:, 0]
+    out = {"run_dir": str(a.run_dir), "counters": {k: state["counters"][k] for k in
+                                                   ("stage", "env_steps", "grad_steps")},
+           "temperature": agent.temperature, "q_check": q_check(agent, demos),
+           "pose_mae_vs_demo": [round(float(v), 3) for v in
+                                np.abs(pol_a - demo_a).mean(0)[:6]],
+           "policy_pose_mean": [round(float(v), 3) for v in pol_a.mean(0)[:6]],
+           "demo_pose_mean": [round(float(v), 3) for v in demo_a.mean(0)[:6]],
+           "vacuum_hold_on_demo_states": float(np.mean(pol_a[:, 6] > VACUUM_THRESHOLD))}
+    if agent.discrete_vacuum:
+        with torch.no_grad():
+            qg = agent.grasp_critic(agent._normalize(torch.as_tensor(obs))).numpy()
+        out["grasp_q_on_demo_states"] = {"release_mean": float(qg[:, 0].mean()),
+                                         "hold_mean": float(qg[:, 1].mean()),
+                                         "frac_release_above_hold": float(np.mean(qg[:, 0] >
+                                                                                  qg[:, 1]))}
+    out["tb"] = tb_scalars(a.run_dir)
+    print(json.dumps(out, indent=1))
+    return out
+
+
+if __name__ == "__main__":
+    main()
