@@ -383,3 +383,64 @@ def test_bench_run_on_the_pixel_track(tmp_path):
     with pytest.raises(W.WeightsError, match="no such file"):
         Run("qcfql", ENV, "smoke", 0, tmp_path / "w", track="pixels",
             encoder_weights=tmp_path / "absent.safetensors")
+
+
+# ---------------------------------------------------------------- float16 feature storage
+def test_replay_stores_features_as_float16_and_acts_as_on_the_fly(backbone):
+    """The pixel replay keeps the feature maps as float16 (half the bytes) and returns the
+    same float32 batches as a float32 replay; the policy acts on cached float16 features as
+    on the backbone's unrounded float32 output, within 1e-2 per action value (embeddings
+    within 2e-2): float16 rounding of a map is below 5e-4 relative."""
+    import gymnasium as gym
+
+    from baselines.qcfql import QCFQLConfig
+    from window_bench.data.replay import ChunkReplay
+    from window_bench.installer.rollout import Rollout
+    from window_bench.pixels.agent import PixelQCFQL
+    from window_bench.pixels.encoder import FEATURE_VALUES
+
+    agent = PixelQCFQL(QCFQLConfig(h=2, hidden=(32, 32), batch_size=4), seed=0)
+
+    class Policy:
+        h = 2
+
+        def act(self, obs):
+            return agent.act(obs, deterministic=True)
+
+    env = make_pixel_env(ENV, backbone, max_episode_steps=6)
+    log = Rollout(env, Policy()).run(seed=3)
+    env.close()
+    half, full = (ChunkReplay(8, 2, 0.99, seed=0, half_obs=n) for n in (FEATURE_VALUES, 0))
+    for rb in (half, full):
+        rb.add_episode(log)
+    stored = half._buffer.storage._storage
+    assert stored["obs_half"].dtype == torch.float16 and stored["obs"].shape[1:] == (PROPRIO_DIM,)
+    a, b = half.sample(5), full.sample(5)
+    assert set(a.keys()) == set(b.keys())
+    assert all(torch.equal(a[k], b[k]) for k in b.keys())   # same draws, same float32 values
+    restored = ChunkReplay(8, 2, 0.99, seed=0, half_obs=FEATURE_VALUES)
+    restored.load_state_dict(half.state_dict())
+    assert torch.equal(restored.sample(3)["next_obs"], half.sample(3)["next_obs"])
+    with pytest.raises(ValueError, match="half_obs"):
+        full.load_state_dict(half.state_dict())
+    bad = dataclasses.replace(log, observations=log.observations + np.float32(1e-4))
+    with pytest.raises(ValueError, match="not float16-exact"):
+        half.add_episode(bad)
+
+    # On the fly: the same episode's raw views through the backbone, no float16 rounding.
+    raw_env = gym.make(ENV, obs_mode="pixels", max_episode_steps=6)
+    obs, _ = raw_env.reset(seed=3)
+    fly = []
+    for t in range(log.T + 1):
+        images = torch.from_numpy(np.stack([obs[v] for v in ("wrist_rgb", "side_rgb")]))
+        with torch.no_grad():
+            fmap = backbone(images).reshape(-1).numpy()
+        fly.append(np.concatenate([fmap, obs["robot0_proprio"]]))
+        if t < log.T:
+            obs, *_ = raw_env.step(log.actions[t])
+    raw_env.close()
+    fly = np.stack(fly).astype(np.float32)
+    assert not np.array_equal(fly, log.observations)         # the cache did round
+    np.testing.assert_allclose(agent.embed(log.observations), agent.embed(fly), atol=2e-2, rtol=0)
+    np.testing.assert_allclose(agent.act(log.observations, deterministic=True),
+                               agent.act(fly, deterministic=True), atol=1e-2, rtol=0)

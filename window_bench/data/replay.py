@@ -21,7 +21,11 @@ Stored keys, per chunk (``K`` chunks of one episode, see :func:`chunk_transition
 ``n_steps``, ``chunk_start``, ``episode_id`` (int64), ``episode_accepted`` (bool: the chunk's
 episode ended in acceptance) and ``provenance_code`` (uint8, h): the
 per-step ``provenance_mix`` strings as codes :data:`PROVENANCE_CODES` (TensorDicts hold no
-strings).
+strings). With ``half_obs = n > 0`` the first ``n`` values of ``obs`` / ``next_obs`` are
+stored as float16 under ``obs_half`` / ``next_obs_half`` (the pixel track's cached feature
+maps, which :class:`window_bench.pixels.features.PixelFeatures` rounds to float16, so nothing
+is lost: a value float16 cannot hold exactly is refused) and the rest as float32;
+:meth:`ChunkReplay.sample` returns them joined, float32, as without it.
 
 :func:`mixed_batch` draws the paper's fixed 1:1 demo:online batch (Stage III, after RLPD's
 symmetric sampling): exactly ``round(n * demo_fraction)`` from the demo buffer and the rest
@@ -91,12 +95,15 @@ class ChunkReplay:
         Per-step discount in [0, 1] for the chunk return ``R_k`` and ``discount = gamma**h``.
     seed : int
         Seed of the buffer's own ``torch.Generator`` used by :meth:`sample`.
+    half_obs : int
+        Leading observation values stored as float16 (see the module docstring); 0: none.
     """
 
-    def __init__(self, capacity: int, h: int, gamma: float, seed: int = 0):
+    def __init__(self, capacity: int, h: int, gamma: float, seed: int = 0, half_obs: int = 0):
         self.capacity = _check_count("capacity", capacity, 1)
         self.h, self.gamma = _check_args(h, gamma)
         self.seed = _check_count("seed", seed, 0)
+        self.half_obs = _check_count("half_obs", half_obs, 0)
         self._generator = torch.Generator().manual_seed(self.seed)
         self._buffer = ReplayBuffer(storage=LazyTensorStorage(self.capacity),
                                     sampler=RandomSampler(), writer=RoundRobinWriter(),
@@ -107,6 +114,29 @@ class ChunkReplay:
     def __len__(self) -> int:
         return len(self._buffer)
 
+    def _pack(self, td: TensorDict) -> TensorDict:
+        """``obs``/``next_obs`` -> their float16 head (``*_half``) and float32 tail."""
+        for key in ("obs", "next_obs") if self.half_obs else ():
+            x = td[key]
+            if x.shape[1] < self.half_obs:
+                raise ValueError(f"ChunkReplay: {key!r} has {x.shape[1]} values, fewer than "
+                                 f"half_obs = {self.half_obs}")
+            head = x[:, :self.half_obs].to(torch.float16)
+            if not torch.equal(head.float(), x[:, :self.half_obs]):
+                raise ValueError(f"ChunkReplay: {key!r} values 0..{self.half_obs - 1} are not "
+                                 f"float16-exact; storing them as float16 would change them")
+            td[f"{key}_half"], td[key] = head, x[:, self.half_obs:].contiguous()
+        return td
+
+    def _unpack(self, td: TensorDict) -> TensorDict:
+        for key in ("obs", "next_obs") if self.half_obs else ():
+            head, tail = td.pop(f"{key}_half"), td[key]
+            out = torch.empty(len(tail), self.half_obs + tail.shape[1])
+            out[:, :self.half_obs].copy_(head)      # widened in the copy: one pass
+            out[:, self.half_obs:].copy_(tail)
+            td[key] = out
+        return td
+
     def add_episode(self, episode: EpisodeLog) -> int:
         """Cut ``episode`` into chunk transitions on the fixed grid and append them.
 
@@ -114,10 +144,10 @@ class ChunkReplay:
         invalid episode (see :meth:`EpisodeLog.validate`) or one whose observation size
         differs from the chunks already stored.
         """
-        td = chunks_to_tensordict(chunk_transitions(episode, self.h, self.gamma))
+        td = self._pack(chunks_to_tensordict(chunk_transitions(episode, self.h, self.gamma)))
         if len(self) > 0:
             stored = self._buffer.storage._storage
-            for key in ("obs", "actions"):
+            for key in ("obs", "actions") + (("obs_half",) if self.half_obs else ()):
                 if td[key].shape[1:] != stored[key].shape[1:]:
                     raise ValueError(f"ChunkReplay.add_episode: {key!r} has per-chunk shape "
                                      f"{tuple(td[key].shape[1:])}, the buffer holds "
@@ -136,7 +166,7 @@ class ChunkReplay:
         if len(self) == 0:
             raise ValueError(f"ChunkReplay.sample({n}): the buffer is empty; add episodes "
                              f"with add_episode() before sampling")
-        return self._buffer.sample(n)
+        return self._unpack(self._buffer.sample(n))
 
     def state_dict(self) -> dict:
         """Everything for an exact resume: settings, the stored chunks in storage order, the
@@ -149,7 +179,7 @@ class ChunkReplay:
         data = ({key: value.clone() for key, value in self._buffer.storage[:n].items()}
                 if n else {})
         return {"capacity": self.capacity, "h": self.h, "gamma": self.gamma,
-                "seed": self.seed, "chunks_added": self.chunks_added,
+                "seed": self.seed, "half_obs": self.half_obs, "chunks_added": self.chunks_added,
                 "episodes_added": self.episodes_added, "data": data,
                 "writer": dict(self._buffer.writer.state_dict()),
                 "rng_state": self._generator.get_state()}
@@ -157,9 +187,11 @@ class ChunkReplay:
     def load_state_dict(self, sd: dict) -> None:
         """Restore a :meth:`state_dict` into this buffer, replacing its contents.
 
-        ``capacity``, ``h`` and ``gamma`` must match this buffer's (``ValueError`` otherwise).
+        ``capacity``, ``h``, ``gamma`` and ``half_obs`` must match this buffer's
+        (``ValueError`` otherwise).
         """
-        for key in ("capacity", "h", "gamma"):
+        sd = {"half_obs": 0, **sd}      # saved before the setting existed: float32 throughout
+        for key in ("capacity", "h", "gamma", "half_obs"):
             if sd[key] != getattr(self, key):
                 raise ValueError(f"ChunkReplay.load_state_dict: {key} = {sd[key]!r} in the "
                                  f"state dict, {getattr(self, key)!r} in this buffer")

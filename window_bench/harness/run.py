@@ -227,7 +227,8 @@ class Evaluator:
 def _replay_from_state(sd: dict):
     from window_bench.data.replay import ChunkReplay
 
-    rb = ChunkReplay(sd["capacity"], sd["h"], sd["gamma"], seed=sd["seed"])
+    rb = ChunkReplay(sd["capacity"], sd["h"], sd["gamma"], seed=sd["seed"],
+                     half_obs=sd.get("half_obs", 0))
     rb.load_state_dict(sd)
     return rb
 
@@ -364,11 +365,14 @@ class Run:
 
         self.track = check_track(track)
         self.backbone, self.encoder_weights, self._pixel_demos = None, None, None
+        self.replay_half_obs = 0
         self.encoder = {"track_label": TRACK_LABELS[self.track]}
         if self.track == "pixels":
             from window_bench.harness.files import sha256_file
+            from window_bench.pixels.encoder import FEATURE_VALUES
             from window_bench.pixels.weights import DEFAULT_WEIGHTS, resolve_backbone, weights_record
 
+            self.replay_half_obs = FEATURE_VALUES   # both views' maps, float16-exact
             kind = track_agent_kind(self.method.agent, self.track)
             self.method = dataclasses.replace(self.method, agent=kind)
             self.agent_cls = agent_class(kind)
@@ -436,11 +440,12 @@ class Run:
         demo_chunks = sum(-(-ep.T // h) for ep in demos)
         if self.agent.takeovers_to_demo:
             demo_chunks += p.budget_steps
-        self.demo_rb = ChunkReplay(demo_chunks, h, gamma, seed=self.seed)
+        half = self.replay_half_obs   # pixel track: feature maps stored as float16
+        self.demo_rb = ChunkReplay(demo_chunks, h, gamma, seed=self.seed, half_obs=half)
         for ep in demos:
             self.demo_rb.add_episode(ep)
         self.online_rb = ChunkReplay(p.budget_steps // h + 2 * p.max_episode_steps, h, gamma,
-                                     seed=self.seed + 1)
+                                     seed=self.seed + 1, half_obs=half)
 
     def _save(self) -> None:
         self.files.write_state(STATE, {

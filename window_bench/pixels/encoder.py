@@ -33,7 +33,8 @@ CHANNELS = 512
 FEATURE_HW = IMAGE_SIZE // 32         # 4: the backbone's stride is 32
 VIEW_FEATURES = CHANNELS * FEATURE_HW * FEATURE_HW   # 8,192 values per view
 PROPRIO_DIM = 18                      # q (7), q-dot (7), end-effector position (3), vacuum (1)
-OBS_DIM = len(VIEWS) * VIEW_FEATURES + PROPRIO_DIM   # 16,402: the flat pixel observation
+FEATURE_VALUES = len(VIEWS) * VIEW_FEATURES          # 16,384 feature-map values, float16-exact
+OBS_DIM = FEATURE_VALUES + PROPRIO_DIM               # 16,402: the flat pixel observation
 EMBED_DIM = 32                        # per view (Appendix)
 SPATIAL_FEATURES = 8                  # HIL-SERL's num_spatial_blocks
 
