@@ -54,6 +54,7 @@ import torch
 from torch import nn
 
 from window_bench.data.steplog import ACTION_DIM, EpisodeLog
+from window_bench.envs.task import STAGES
 from window_bench.harness.agent import (Agent, AgentSpec, generator_state, load_optimizer_state,
                                         module_state, optimizer_state, with_overrides)
 
@@ -159,7 +160,9 @@ _INFERENCE_ONLY = ("temporal_ensembling", "ensemble_coeff", "offline_steps")
 #: for tests and CI.
 ACT_PROFILES: dict[str, ACTConfig] = {
     "paper": ACTConfig(),
-    "cpu": ACTConfig(d_model=256, n_heads=8, ff=1024, enc_layers=4, vae_enc_layers=4,
+    # Acting weights (policy_state_dict) 0.22 M parameters, a 0.90 MB policy file; the
+    # CVAE encoder (training only) keeps the reference depth.
+    "cpu": ACTConfig(d_model=64, n_heads=4, ff=256, enc_layers=3, vae_enc_layers=4,
                      dec_layers=1, latent_dim=32, lr=1e-4, offline_steps=20_000),
     "smoke": ACTConfig(d_model=32, n_heads=2, ff=64, enc_layers=1, vae_enc_layers=1,
                        dec_layers=1, latent_dim=4, dropout=0.0, lr=1e-3, offline_steps=100),
@@ -725,7 +728,10 @@ def _collect_demos(env_id: str, seeds) -> list[EpisodeLog]:
 
 
 def _rollout(agent: ACTAgent, env_id: str, seeds) -> list[dict]:
-    """Seeded evaluation episodes; chunks are executed open-loop, ``agent.h`` at a time."""
+    """Seeded evaluation episodes, ``agent.h`` actions executed per query; each row says how
+    the episode ended and where it stalled (the step its furthest stage was reached, the
+    cause of any suction loss) and what the policy commanded (mean |action| per dim, steps
+    with the vacuum command at or below the environment's 0.5 threshold)."""
     import importlib
 
     import gymnasium as gym
@@ -737,37 +743,68 @@ def _rollout(agent: ACTAgent, env_id: str, seeds) -> list[dict]:
         obs, info = env.reset(seed=int(seed))
         agent.reset()
         queue: deque = deque()
-        steps, term, trunc = 0, False, False
+        actions, stage, stage_step, term, trunc = [], int(info["stage"]), 0, False, False
         while not (term or trunc):
             if not queue:
                 queue.extend(agent.act(obs)[: agent.h])
-            obs, _, term, trunc, info = env.step(queue.popleft())
-            steps += 1
-        rows.append({"seed": int(seed), "success": bool(term), "steps": steps,
+            actions.append(queue.popleft())
+            obs, _, term, trunc, info = env.step(actions[-1])
+            if info["stage"] > stage:
+                stage, stage_step = int(info["stage"]), len(actions)
+        actions = np.asarray(actions, dtype=np.float64)
+        rows.append({"seed": int(seed), "success": bool(term), "steps": len(actions),
                      "failure_mode": info["failure_mode"] or None,
                      "suction_acquired": bool(info["suction_acquired"]),
                      "insertion_entered": bool(info["insertion_entered"]),
-                     "position_error_mm": round(1000 * float(info["position_error"]), 2)})
+                     "position_error_mm": round(1000 * float(info["position_error"]), 2),
+                     "stage": STAGES[stage], "stage_step": stage_step,
+                     "commanded_releases": int(info["suction_releases"]),
+                     "grip_breaks": int(info["suction_failures"]),
+                     "vacuum_off_steps": int((actions[:, -1] <= 0.5).sum()),
+                     "abs_action_mean": np.abs(actions).mean(0).round(4).tolist()})
     env.close()
     return rows
 
 
-def main(argv=None) -> dict:
-    """Collect scripted demos, train ACT offline, evaluate at checkpoints; write a JSON.
+def _harness_demos(env_id: str, operator: str, root, n: int, seed: int) -> list[EpisodeLog]:
+    """``n`` demonstrations of an operator model, collected (or loaded) exactly as ``bench run``
+    collects its D_demo: Minari under ``root``, episode ``i`` from seed ``seed + i``."""
+    from window_bench.installer.demos import load_or_collect_demos
 
-    ``python -m baselines.act --profile cpu --steps 10000 --out act_cpu.json``
+    eps = load_or_collect_demos(root, env_id, operator, n, seed=seed, progress=False)
+    if len(eps) < n:
+        raise ValueError(f"{root}: {len(eps)} demonstrations of {operator!r}, need {n}")
+    return eps[:n]
+
+
+def main(argv=None) -> dict:
+    """Collect demos, train ACT offline, evaluate at checkpoints; write a JSON.
+
+    ``python -m baselines.act --profile cpu --steps 10000 --out act_cpu.json`` (scripted
+    installer demos); ``--operator average --demos-dir DIR`` trains on the harness's D_demo
+    (seed ``1,000,000 + --seed``, as ``bench run``) with held-out demos from seed 2,000,000.
     """
     import argparse
     import json
     import os
     import time
 
-    from window_bench.harness.evaluation import atomic_write_text, provenance, wilson_interval
+    from window_bench.harness.evaluation import (atomic_write, atomic_write_text, provenance,
+                                                 wilson_interval)
 
     p = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
     p.add_argument("--env", default="WindowInstall-A-v0")
     p.add_argument("--profile", default="cpu", choices=sorted(ACT_PROFILES))
     p.add_argument("--lr", type=float, default=None, help="override the profile's lr")
+    p.add_argument("--agent-config", action="append", metavar="KEY=VALUE",
+                   help="override an ACTConfig field (repeatable), as bench run --agent-config")
+    p.add_argument("--operator", default=None,
+                   help="demos of this operator model (bench's D_demo); default: the scripted "
+                        "installer on seeds 0..")
+    p.add_argument("--demos-dir", default="runs/act_demos",
+                   help="Minari root for --operator demos (held-out ones under heldout/)")
+    p.add_argument("--policies", default=None,
+                   help="write each checkpoint's acting weights here as step_N.safetensors")
     p.add_argument("--demos", type=int, default=50, help="demo seeds 0 .. demos-1")
     p.add_argument("--heldout", type=int, default=10, help="held-out demo seeds after those")
     p.add_argument("--steps", type=int, default=None, help="default: the profile's")
@@ -783,15 +820,31 @@ def main(argv=None) -> dict:
     if args.resume and not (args.save and os.path.exists(args.save)):
         p.error("--resume needs --save pointing to an existing checkpoint")
 
+    from window_bench.harness.agent import with_overrides
+    from window_bench.harness.files import dump_state
+    from window_bench.harness.run import parse_overrides
+
     cfg = ACT_PROFILES[args.profile]
+    try:
+        cfg = with_overrides(cfg, parse_overrides(args.agent_config))
+    except ValueError as e:
+        p.error(str(e))
     if args.lr is not None:
         cfg = replace(cfg, lr=args.lr)
     steps = cfg.offline_steps if args.steps is None else args.steps
     t0 = time.perf_counter()
-    demos = _collect_demos(args.env, range(args.demos))
-    heldout = _collect_demos(args.env, range(args.demos, args.demos + args.heldout))
+    if args.operator is None:
+        demos = _collect_demos(args.env, range(args.demos))
+        heldout = _collect_demos(args.env, range(args.demos, args.demos + args.heldout))
+    else:
+        demos = _harness_demos(args.env, args.operator, args.demos_dir, args.demos,
+                               1_000_000 + args.seed)
+        heldout = _harness_demos(args.env, args.operator, os.path.join(args.demos_dir, "heldout"),
+                                 args.heldout, 2_000_000)
     result = {"method": "act", "env_id": args.env, "profile": args.profile,
-              "config": asdict(cfg), "seed": args.seed, "demo_seeds": [0, args.demos - 1],
+              "operator": args.operator or "scripted", "config": asdict(cfg), "seed": args.seed,
+              "demo_seeds": [demos[0].seed, demos[-1].seed],
+              "heldout_seeds": [heldout[0].seed, heldout[-1].seed],
               "demo_successes": sum(bool(e.terminated[-1]) for e in demos),
               "collect_s": round(time.perf_counter() - t0, 1), "provenance": provenance(),
               "checkpoints": []}
@@ -819,6 +872,12 @@ def main(argv=None) -> dict:
                "l1": float(np.mean([g["l1"] for g in logs])),
                "kl": float(np.mean([g["kl"] for g in logs])),
                "heldout_l1": agent.chunk_l1(heldout)}
+        policy = dump_state(agent.policy_state_dict(), "policy", {"agent_kind": "act"})
+        row["policy_bytes"] = len(policy)
+        if args.policies:
+            os.makedirs(args.policies, exist_ok=True)
+            atomic_write(os.path.join(args.policies, f"step_{agent.grad_steps:07d}.safetensors"),
+                         lambda f: f.write(policy))
         for name, a in (("chunked", agent), ("temporal_ensembling", te_agent)):
             rows = _rollout(a, args.env, eval_seeds) if args.episodes else []
             k = sum(r["success"] for r in rows)

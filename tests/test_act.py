@@ -3,6 +3,7 @@
 import io
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -12,6 +13,7 @@ import torch
 from baselines.act import (ACT_PROFILES, FLAT_ROBOT_DIM, ACTAgent, ACTConfig, _collect_demos,
                            act_loss, kl_to_prior, temporal_ensemble)
 from window_bench.envs.env import STATE_KEYS
+from window_bench.envs.task import STAGES
 from window_bench.data.steplog import EpisodeLog
 
 torch.set_num_threads(1)
@@ -328,14 +330,70 @@ def test_smoke_model_learns_from_scripted_demos(demos):
 
 def test_script_trains_evaluates_and_resumes(tmp_path):
     from baselines.act import main
+    from window_bench.harness.files import load_state
 
-    out, ckpt = tmp_path / "act.json", tmp_path / "act.pt"
+    out, ckpt, pol = tmp_path / "act.json", tmp_path / "act.pt", tmp_path / "policies"
     common = ["--profile", "smoke", "--demos", "2", "--heldout", "1", "--eval-every", "10",
-              "--out", str(out), "--save", str(ckpt)]
+              "--out", str(out), "--save", str(ckpt), "--policies", str(pol),
+              "--agent-config", "latent_dim=3"]
     main(common + ["--steps", "10", "--episodes", "0"])
     result = main(common + ["--steps", "20", "--episodes", "1", "--resume"])
     rows = result["checkpoints"]
     assert [r["grad_steps"] for r in rows] == [10, 20]
     assert rows[1]["chunked"]["episodes"] == 1 and rows[1]["temporal_ensembling"]["episodes"] == 1
+    ep = rows[1]["chunked"]["rows"][0]   # the diagnostics of an evaluation episode
+    assert ep["stage"] in STAGES and 0 <= ep["vacuum_off_steps"] <= ep["steps"]
+    assert len(ep["abs_action_mean"]) == 7 and ep["grip_breaks"] >= 0
     assert result["demo_successes"] == 2 and result["provenance"]["git_commit"]
+    assert result["config"]["latent_dim"] == 3
     assert ACTAgent.from_state_dict(torch.load(ckpt, weights_only=True)).grad_steps == 20
+    # each checkpoint's acting weights, as the harness writes them, with their size recorded
+    f = pol / "step_0000020.safetensors"
+    assert f.stat().st_size == rows[1]["policy_bytes"]
+    policy = ACTAgent.from_policy_state_dict(load_state(f, "policy")[0])
+    assert policy.config.latent_dim == 3
+    with pytest.raises(SystemExit):
+        main(common + ["--agent-config", "nope=1"])
+
+
+def test_cpu_policy_file_is_under_1_mb_without_the_cvae_encoder():
+    """The `cpu` profile's acting weights, as the harness writes them (safetensors), stay
+    under 1 MB (a reported policy is committed as this file), and leave out the CVAE
+    encoder, which only training runs."""
+    from window_bench.harness.files import dump_state
+
+    agent = ACTAgent(OBS_DIM, config=ACT_PROFILES["cpu"], seed=0)
+    agent.fit_normalizer([synthetic_episode(23, 0)])
+    sd = agent.policy_state_dict()
+    size = len(dump_state(sd, "policy", {"agent_kind": "act", "env_id": "WindowInstall-A-v0"}))
+    assert size <= 1_000_000, size
+    assert not [k for k in sd["model"] if k.startswith(("cls_embed", "vae_", "latent_proj."))]
+    cvae = sum(p.numel() for n, p in agent.model.named_parameters()
+               if n.startswith(("cls_embed", "vae_", "latent_proj.")))
+    acting = sum(v.numel() for v in sd["model"].values())
+    assert cvae > 0 and acting + cvae == sum(p.numel() for p in agent.model.parameters())
+    # the paper-size policy is far larger: the bound is a property of the cpu sizes
+    big = ACTAgent(OBS_DIM, config=replace(ACT_PROFILES["cpu"], d_model=256, ff=1024), seed=0)
+    big.norm = agent.norm
+    assert len(dump_state(big.policy_state_dict(), "policy")) > 4 * size
+
+
+def test_trainset_script_replays_a_policy_file_in_both_modes(tmp_path):
+    import importlib.util
+
+    from window_bench.harness.files import dump_state
+
+    spec = importlib.util.spec_from_file_location(
+        "act_trainset", Path(__file__).parents[1] / "experiments/sanity/act_trainset.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    eps = _collect_demos("WindowInstall-A-v0", [0])
+    agent = ACTAgent(OBS_DIM, config=SMOKE, seed=0)
+    agent.train_offline(eps, 5)
+    f = tmp_path / "step_0000005.safetensors"
+    f.write_bytes(dump_state(agent.policy_state_dict(), "policy"))
+    result = script.main(["--policy", str(f), "--demos", "1", "--out", str(tmp_path)])
+    for mode in script.MODES:
+        s = result[f"train_starts/{mode}"]
+        assert s["episodes"] == 1 and s["rows"][0]["seed"] == 0 and len(s["wilson95"]) == 2
+    assert result["policy_bytes"] == f.stat().st_size and result["demo_seeds"] == [0]

@@ -1,10 +1,16 @@
-"""Can the ACT pipeline imitate at all? Train ACT on a few scripted-installer
-demonstrations and replay it from the same initial states (train-set success), in both
-evaluation modes (temporal ensembling, the default, and open-loop chunks).
+"""Can the ACT pipeline imitate at all? Replay ACT from the initial states of its own
+training demonstrations (train-set success), in both evaluation modes (temporal
+ensembling, the default, and open-loop chunks), optionally also on the dev seeds, with the
+diagnostics that say where failing episodes stall.
 
+    # train a smoke-size ACT on 3 scripted-installer demos, replay it from their starts
     python experiments/sanity/act_trainset.py --profile smoke --demos 3 --steps 3000
+    # a trained policy file (python -m baselines.act --policies DIR, or a bench run's
+    # policies/): its first 20 training starts and 20 dev seeds
+    python experiments/sanity/act_trainset.py --policy DIR/step_0020000.safetensors \
+        --operator average --demos-dir DEMOS --demos 20 --dev 20
 
-Writes ``runs/sanity/act_trainset_<profile>_<demos>x<steps>.json``.
+Writes ``<out>/act_trainset_<profile>_<demos>x<steps>.json`` (or ``..._<policy name>.json``).
 """
 
 from __future__ import annotations
@@ -12,13 +18,36 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections import Counter
 from dataclasses import asdict, replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
-from baselines.act import ACT_PROFILES, ACTAgent, _collect_demos, _rollout
-from window_bench.harness.evaluation import atomic_write_text, provenance
+from baselines.act import (ACT_PROFILES, ACTAgent, _collect_demos, _harness_demos, _rollout)
+from window_bench.harness.evaluation import atomic_write_text, provenance, wilson_interval
+from window_bench.harness.files import load_state, sha256_file
+from window_bench.harness.seeds import eval_seeds
+
+MODES = ("temporal_ensembling", "chunked")
+
+
+def summarize(rows: list[dict]) -> dict:
+    """k/N with its Wilson interval, and how the failing episodes ended."""
+    k, n = sum(r["success"] for r in rows), len(rows)
+    fails = [r for r in rows if not r["success"]]
+    return {"successes": k, "episodes": n, "wilson95": list(wilson_interval(k, n)),
+            "failure_modes": dict(Counter(r["failure_mode"] or "timeout" for r in fails)),
+            "furthest_stage": dict(Counter(r["stage"] for r in fails)),
+            "furthest_stage_step_median": (float(np.median([r["stage_step"] for r in fails]))
+                                           if fails else None),
+            "episodes_with_commanded_release": sum(r["commanded_releases"] > 0 for r in rows),
+            "episodes_with_grip_break": sum(r["grip_breaks"] > 0 for r in rows),
+            "episodes_with_vacuum_off_command": sum(r["vacuum_off_steps"] > 0 for r in rows),
+            "final_position_error_mm_median": float(np.median([r["position_error_mm"]
+                                                               for r in rows])),
+            "abs_action_mean": np.mean([r["abs_action_mean"] for r in rows], 0).round(4).tolist()}
 
 
 def main(argv=None):
@@ -26,37 +55,74 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--env", default="WindowInstall-A-v0")
     p.add_argument("--profile", default="smoke", choices=sorted(ACT_PROFILES))
-    p.add_argument("--demos", type=int, default=3, help="demonstrations, seeds 0..N-1")
+    p.add_argument("--operator", default=None,
+                   help="training demos of this operator model (bench's D_demo, seed "
+                        "1,000,000 + --seed); default: the scripted installer on seeds 0..N-1")
+    p.add_argument("--demos-dir", default="runs/act_demos", help="Minari root for --operator")
+    p.add_argument("--demos", type=int, default=3, help="training starts replayed (the first N)")
+    p.add_argument("--train-demos", type=int, default=None,
+                   help="demos trained on (default --demos); with --policy: those it was "
+                        "trained on, of which the first --demos are replayed")
     p.add_argument("--steps", type=int, default=3000)
+    p.add_argument("--policy", default=None,
+                   help="evaluate this ACT policy file instead of training one")
+    p.add_argument("--dev", type=int, default=0, help="also evaluate on this many dev seeds")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/sanity")
     a = p.parse_args(argv)
-    if a.demos < 1 or a.steps < 1:
-        p.error(f"--demos {a.demos} and --steps {a.steps} must be >= 1")
-    demos = _collect_demos(a.env, range(a.demos))
-    cfg = ACT_PROFILES[a.profile]
-    agent = ACTAgent(demos[0].observations.shape[1], config=cfg, seed=a.seed)
-    t0 = time.process_time()
-    logs = agent.train_offline(demos, a.steps)
-    cpu_s = time.process_time() - t0
-    chunked = ACTAgent(agent.obs_dim, config=replace(cfg, temporal_ensembling=False))
-    chunked.load_state_dict(agent.state_dict())
-    seeds = [ep.seed for ep in demos]
-    result = {"env": a.env, "profile": a.profile, "config": asdict(cfg), "seed": a.seed,
-              "demo_seeds": seeds, "demo_steps": [ep.T for ep in demos],
-              "demo_successes": sum(bool(ep.terminated[-1]) for ep in demos),
-              "grad_steps": a.steps, "train_cpu_s": round(cpu_s, 1),
-              "final_loss": sum(g["loss"] for g in logs[-50:]) / len(logs[-50:]),
-              "train_l1_z0": agent.chunk_l1(demos),
-              "temporal_ensembling": _rollout(agent, a.env, seeds),
-              "chunked": _rollout(chunked, a.env, seeds), "provenance": provenance()}
+    n_train = a.demos if a.train_demos is None else a.train_demos
+    if a.demos < 1 or a.steps < 1 or n_train < a.demos or a.dev < 0:
+        p.error(f"--demos {a.demos}, --steps {a.steps} must be >= 1, --train-demos {n_train} "
+                f">= --demos, --dev {a.dev} >= 0")
+    if a.policy is not None and not Path(a.policy).is_file():
+        p.error(f"--policy {a.policy}: no such file")
+    if a.operator is None:
+        demos = _collect_demos(a.env, range(n_train))
+    else:
+        demos = _harness_demos(a.env, a.operator, a.demos_dir, n_train, 1_000_000 + a.seed)
+    result = {"env": a.env, "operator": a.operator or "scripted", "seed": a.seed,
+              "demo_seeds": [ep.seed for ep in demos[: a.demos]],
+              "demo_steps": [ep.T for ep in demos[: a.demos]],
+              "demo_successes": sum(bool(ep.terminated[-1]) for ep in demos[: a.demos]),
+              "demo_abs_action_mean": np.abs(np.concatenate([ep.actions for ep in demos[: a.demos]])
+                                             ).mean(0).round(4).tolist()}
+    if a.policy is None:
+        cfg = ACT_PROFILES[a.profile]
+        agent = ACTAgent(demos[0].observations.shape[1], config=cfg, seed=a.seed)
+        t0 = time.process_time()
+        logs = agent.train_offline(demos, a.steps)
+        result.update(profile=a.profile, grad_steps=a.steps,
+                      train_cpu_s=round(time.process_time() - t0, 1),
+                      final_loss=sum(g["loss"] for g in logs[-50:]) / len(logs[-50:]))
+        sd, name = agent.policy_state_dict(), f"{a.profile}_{a.demos}x{a.steps}"
+    else:
+        sd, meta = load_state(a.policy, "policy")
+        result.update(policy=str(a.policy), policy_sha256=sha256_file(a.policy),
+                      policy_bytes=Path(a.policy).stat().st_size, policy_meta=meta)
+        name = f"{a.operator or 'scripted'}_{Path(a.policy).stem}"
+    agents = {m: ACTAgent.from_policy_state_dict(
+        {**sd, "config": {**sd["config"], "temporal_ensembling": m == "temporal_ensembling"}})
+        for m in MODES}
+    result["config"] = asdict(replace(agents["chunked"].config, temporal_ensembling=True))
+    result["train_l1_z0"] = agents["chunked"].chunk_l1(demos)
+    sets = {"train_starts": result["demo_seeds"]}
+    if a.dev:
+        sets["dev"] = eval_seeds("dev", a.dev)
+    for set_name, seeds in sets.items():
+        for mode in MODES:
+            t0 = time.perf_counter()
+            rows = _rollout(agents[mode], a.env, seeds)
+            result[f"{set_name}/{mode}"] = {**summarize(rows), "rows": rows,
+                                            "wall_s": round(time.perf_counter() - t0, 1)}
+            s = result[f"{set_name}/{mode}"]
+            print(f"{set_name:12s} {mode:20s} {s['successes']}/{s['episodes']} "
+                  f"Wilson [{s['wilson95'][0]:.3f}, {s['wilson95'][1]:.3f}] "
+                  f"{s['failure_modes']} stage {s['furthest_stage']}", flush=True)
+    result["provenance"] = provenance()
     Path(a.out).mkdir(parents=True, exist_ok=True)
-    atomic_write_text(Path(a.out) / f"act_trainset_{a.profile}_{a.demos}x{a.steps}.json",
-                      json.dumps(result, indent=1))
-    for mode in ("temporal_ensembling", "chunked"):
-        print(mode, [(r["seed"], r["success"], r["failure_mode"], r["position_error_mm"])
-                     for r in result[mode]])
-    print({k: result[k] for k in ("train_cpu_s", "final_loss", "train_l1_z0")})
+    atomic_write_text(Path(a.out) / f"act_trainset_{name}.json", json.dumps(result, indent=1))
+    print({k: result.get(k) for k in ("train_cpu_s", "final_loss", "train_l1_z0")})
+    return result
 
 
 if __name__ == "__main__":
