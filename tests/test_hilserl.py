@@ -245,6 +245,22 @@ def test_td_target_entropy_backup_uses_next_action_log_prob():
     torch.testing.assert_close(y, expected)
 
 
+def test_td_target_of_real_demo_chunks_never_exceeds_one(demo_td):
+    """The sparse acceptance reward (1 once, on the terminating step) through the harness's
+    chunking: with target critics valued at their ceiling 1, every target is <= 1, exactly
+    1 on the accepted step and gamma elsewhere (no reward scaling, no double reward, the
+    bootstrap masked at termination). Q above 1 after training is therefore the critics'
+    extrapolation, not the target's arithmetic (docs/baselines.md, issue 15)."""
+    agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(8,), batch_size=2))
+    _constant_target_critics(agent, [1.0, 1.0])
+    y = agent.td_target(demo_td)
+    terminal = demo_td["terminal"].reshape(-1)
+    assert int(terminal.sum()) == 1 and bool(terminal[-1])
+    assert float(y.max()) <= 1.0 + 1e-6
+    torch.testing.assert_close(y[terminal], torch.ones(1))
+    torch.testing.assert_close(y[~terminal], torch.full((int((~terminal).sum()),), GAMMA))
+
+
 def test_td_target_min_over_random_subset():
     """RLPD: min over 2 of 4 members drawn without replacement: the largest member can
     never be the min, every other member sometimes is."""

@@ -7,6 +7,12 @@ return exceeds 1; a critic far above 1 is extrapolating. Reads the run's last sa
 (``state.safetensors``, checked against its manifest), so it also works on a running run.
 
     python experiments/sanity/hilserl_run_qstats.py /tmp/hil_nooff --demos runs/sanity/demos_s0
+
+``--eval M`` also evaluates the saved policy (or ``--policy-step N``'s checkpoint policy)
+deterministically on the first M development
+seeds (100,000...) twice: as it is, and with the vacuum forced to "hold" (the pose actor
+alone), which separates what the grasp critic's releases cost from what the pose actor can
+do.
 """
 
 from __future__ import annotations
@@ -20,11 +26,13 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from hilserl_stage1 import q_check  # noqa: E402  (same statistics as right after Stage I)
+from hilserl_stage1 import evaluate, q_check  # noqa: E402  (same statistics as right after Stage I)
 
 from baselines.hilserl import HILSERLAgent  # noqa: E402
 from window_bench.envs.env import VACUUM_THRESHOLD  # noqa: E402
 from window_bench.harness.files import load_state, verify_files  # noqa: E402
+from window_bench.harness.evaluation import atomic_write_text  # noqa: E402
+from window_bench.harness.run import load_policy_file, summarize_eval  # noqa: E402
 from window_bench.installer.demos import load_demos  # noqa: E402
 
 
@@ -44,6 +52,29 @@ def tb_scalars(run_dir: Path, tags=("loss/q_mean", "loss/target_mean", "loss/gra
     return out
 
 
+class HoldVacuum:
+    """The agent's pose actions with the vacuum command forced to hold (+1)."""
+
+    def __init__(self, agent):
+        self.agent = agent
+
+    def act(self, obs, deterministic=True):
+        a = self.agent.act(obs, deterministic=deterministic).copy()
+        a[..., -1] = 1.0
+        return a
+
+
+def eval_summary(agent, env_id: str, episodes: int) -> dict:
+    rows, actions = evaluate(agent, env_id, episodes, 600)
+    s = summarize_eval([{**r, "cycle_time_s": r["steps"] / 10} for r in rows])
+    s["median_first_suction_loss_step"] = (
+        float(np.median([r["first_suction_loss_step"] for r in rows
+                         if r["first_suction_loss_step"] is not None]))
+        if any(r["first_suction_loss_step"] is not None for r in rows) else None)
+    s["eval_pose_action_mean"] = [round(float(v), 3) for v in actions.mean(0)[:6]]
+    return s
+
+
 def main(argv=None) -> dict:
     torch.set_num_threads(1)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -51,7 +82,14 @@ def main(argv=None) -> dict:
     p.add_argument("--demos", type=Path, default=None, help="Minari root (default: RUN/demos)")
     p.add_argument("--env", default="WindowInstall-A-v0")
     p.add_argument("--n-demos", type=int, default=50)
+    p.add_argument("--eval", type=int, default=0, metavar="M",
+                   help="evaluate as is and with the vacuum held, M episodes each")
+    p.add_argument("--policy-step", type=int, default=None, metavar="N",
+                   help="evaluate policies/step_N.safetensors instead of the saved state's")
+    p.add_argument("--json", type=Path, default=None, help="also write the result here")
     a = p.parse_args(argv)
+    if a.eval < 0 or a.n_demos < 1:
+        p.error(f"--eval {a.eval} must be >= 0 and --n-demos {a.n_demos} >= 1")
     verify_files(a.run_dir, ["state.safetensors"])
     state, _ = load_state(a.run_dir / "state.safetensors", "state")
     agent = HILSERLAgent.from_state_dict(state["agent"])
@@ -75,7 +113,19 @@ def main(argv=None) -> dict:
                                          "frac_release_above_hold": float(np.mean(qg[:, 0] >
                                                                                   qg[:, 1]))}
     out["tb"] = tb_scalars(a.run_dir)
-    print(json.dumps(out, indent=1))
+    if a.eval:
+        if a.policy_step is not None:
+            _, policy, _ = load_policy_file(
+                a.run_dir / "policies" / f"step_{a.policy_step:07d}.safetensors")
+            agent = HILSERLAgent.from_policy_state_dict(policy)
+            out["eval_policy_step"] = a.policy_step
+        out["eval_as_is"] = eval_summary(agent, a.env, a.eval)
+        out["eval_vacuum_held"] = eval_summary(HoldVacuum(agent), a.env, a.eval)
+    text = json.dumps(out, indent=1)
+    print(text)
+    if a.json is not None:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(a.json, text)
     return out
 
 
