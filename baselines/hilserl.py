@@ -70,6 +70,10 @@ VACUUM_HEADS = ("discrete", "gaussian")
 #: engages the vacuum iff the value exceeds ``VACUUM_THRESHOLD``; a stored action maps back
 #: to the command index by the same threshold.
 VACUUM_COMMANDS = (-1.0, 1.0)
+#: Index of the vacuum flag (``robot0_vacuum``: 1 while the panel is held) in the flat state
+#: observation, which concatenates ``STATE_KEYS`` in order; and that observation's size.
+VACUUM_OBS_INDEX = 7 + 7 + 3 + 4     # after joint_pos, joint_vel, eef_pos, eef_quat
+FLAT_OBS_DIM = 52
 
 
 # --------------------------------------------------------------------------- configuration
@@ -134,6 +138,13 @@ class HILSERLConfig:
         Probability of a uniformly drawn vacuum command when acting stochastically
         (``act(..., deterministic=False)``); HIL-SERL's agent explores the gripper only
         through interventions (0).
+    suction_loss_terminal : bool
+        A transition whose observation has the panel held (vacuum flag 1) and whose next
+        observation has it lost (flag 0) ends the TD targets of the critics and the grasp
+        critic (terminal, no bootstrap): a lost panel counts as a failure with value 0.
+        Neither the paper nor HIL-SERL has it (they bootstrap through it, as the sparse
+        acceptance reward defines no failure); state track only (the flat 52-float
+        observation). Default False.
     offline_steps : int or None
         Stage I gradient steps (offline pretraining on D_demo only). None: the profile's
         ``offline_steps`` (the paper's protocol); 0: no Stage I, the learner starts with the
@@ -162,6 +173,7 @@ class HILSERLConfig:
     obs_clip: float | None = 10.0
     vacuum_head: str = "discrete"
     vacuum_epsilon: float = 0.0
+    suction_loss_terminal: bool = False
     offline_steps: int | None = None
 
     @property
@@ -197,7 +209,8 @@ class HILSERLConfig:
         if not (self.log_std_min < self.log_std_max):
             raise ValueError(f"log_std_min = {self.log_std_min} must be < log_std_max = "
                              f"{self.log_std_max}")
-        for name in ("critic_layernorm", "actor_layernorm", "backup_entropy"):
+        for name in ("critic_layernorm", "actor_layernorm", "backup_entropy",
+                     "suction_loss_terminal"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} = {getattr(self, name)!r} is not allowed: it must be "
                                  f"true or false")
@@ -482,6 +495,10 @@ class HILSERLAgent(Agent):
         self.obs_mean, self.obs_std = self._check_stats(obs_mean, obs_std)
 
         self.discrete_vacuum = config.vacuum_head == "discrete"
+        if config.suction_loss_terminal and obs_dim != FLAT_OBS_DIM:
+            raise ValueError(f"suction_loss_terminal = true needs the flat state observation "
+                             f"(obs_dim {FLAT_OBS_DIM}, vacuum flag at index "
+                             f"{VACUUM_OBS_INDEX}); this agent has obs_dim = {obs_dim}")
         if self.discrete_vacuum and action_dim < 2:
             raise ValueError(f"action_dim = {action_dim} is not allowed with vacuum_head = "
                              f"'discrete': it needs at least one pose dimension and the vacuum")
@@ -610,12 +627,16 @@ class HILSERLAgent(Agent):
                              f"{self.config.gamma} need gamma ** 1 everywhere; build the "
                              f"chunks with the agent's gamma")
         valid = batch["valid"] if "valid" in batch.keys() else torch.ones(B, dtype=torch.bool)
-        return {"obs": self._normalize(batch["obs"].to(torch.float32)),
-                "next_obs": self._normalize(batch["next_obs"].to(torch.float32)),
+        obs, next_obs = batch["obs"].to(torch.float32), batch["next_obs"].to(torch.float32)
+        terminal = batch["terminal"].to(torch.float32).reshape(B)
+        if self.config.suction_loss_terminal:
+            lost = (obs[:, VACUUM_OBS_INDEX] > 0.5) & (next_obs[:, VACUUM_OBS_INDEX] < 0.5)
+            terminal = torch.maximum(terminal, lost.to(torch.float32))
+        return {"obs": self._normalize(obs), "next_obs": self._normalize(next_obs),
                 "actions": actions[:, :self.pose_dim],
                 "vacuum_cmd": vacuum_command_index(actions[:, -1]), "discount": discount,
                 "reward": batch["reward"].to(torch.float32).reshape(B),
-                "terminal": batch["terminal"].to(torch.float32).reshape(B),
+                "terminal": terminal,
                 "valid": valid.to(torch.float32).reshape(B)}
 
     def td_target(self, batch: TensorDict) -> torch.Tensor:
@@ -816,4 +837,4 @@ def _state_config(state: dict) -> dict:
     """The config of a :meth:`HILSERLAgent.state_dict`; states saved before the grasp critic
     and the observation clip were added are what they were: Gaussian vacuum, no clip."""
     return {"vacuum_head": "gaussian", "obs_clip": None, "vacuum_epsilon": 0.0,
-            "offline_steps": None, **state["config"]}
+            "offline_steps": None, "suction_loss_terminal": False, **state["config"]}

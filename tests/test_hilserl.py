@@ -100,6 +100,7 @@ def params(module):
     ({"offline_steps": -1}, "offline_steps"),
     ({"offline_steps": 1.5}, "offline_steps"),
     ({"offline_steps": True}, "offline_steps"),
+    ({"suction_loss_terminal": 1}, "suction_loss_terminal"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -261,6 +262,35 @@ def test_td_target_of_real_demo_chunks_never_exceeds_one(demo_td):
     torch.testing.assert_close(y[~terminal], torch.full((int((~terminal).sum()),), GAMMA))
 
 
+def test_suction_loss_terminal_ends_the_targets_where_the_panel_is_lost(env):
+    """Row 0 loses the panel (vacuum flag 1 -> 0), row 1 keeps it: with the option the lost
+    row's critic and grasp targets are the reward alone, without it both bootstrap."""
+    from baselines.hilserl import VACUUM_OBS_INDEX
+
+    obs, _ = env.reset(seed=0)       # setting A starts with the panel held
+    assert obs.shape == (OBS_DIM,) and obs[VACUUM_OBS_INDEX] == 1.0
+    batch = _two_rows([0.0, 0.0], [False, False])
+    batch["obs"][:, VACUUM_OBS_INDEX] = 1.0
+    batch["next_obs"][:, VACUUM_OBS_INDEX] = torch.tensor([0.0, 1.0])
+    targets = {}
+    for flag in (False, True):
+        agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(8,), batch_size=2,
+                                                           suction_loss_terminal=flag))
+        _constant_target_critics(agent, [2.0, 2.0])
+        with torch.no_grad():
+            last = [m for m in agent.target_grasp_critic.modules()
+                    if isinstance(m, torch.nn.Linear)][-1]
+            last.weight.zero_()
+            last.bias.fill_(3.0)
+        targets[flag] = (agent.td_target(batch), agent.grasp_td_target(batch))
+    torch.testing.assert_close(targets[False][0], torch.full((2,), GAMMA * 2.0))
+    torch.testing.assert_close(targets[True][0], torch.tensor([0.0, GAMMA * 2.0]))
+    torch.testing.assert_close(targets[False][1], torch.full((2,), GAMMA * 3.0))
+    torch.testing.assert_close(targets[True][1], torch.tensor([0.0, GAMMA * 3.0]))
+    with pytest.raises(ValueError, match="suction_loss_terminal"):
+        HILSERLAgent(OBS_DIM + 1, config=HILSERLConfig(suction_loss_terminal=True))
+
+
 def test_td_target_min_over_random_subset():
     """RLPD: min over 2 of 4 members drawn without replacement: the largest member can
     never be the min, every other member sometimes is."""
@@ -396,7 +426,8 @@ def test_states_saved_before_the_grasp_critic_load_as_gaussian():
     old = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(16,), batch_size=32,
                                                      vacuum_head="gaussian", obs_clip=None))
     state = old.state_dict()
-    for key in ("vacuum_head", "obs_clip", "vacuum_epsilon", "offline_steps"):
+    for key in ("vacuum_head", "obs_clip", "vacuum_epsilon", "offline_steps",
+                "suction_loss_terminal"):
         del state["config"][key]
     restored = HILSERLAgent.from_state_dict(state)
     assert restored.config.vacuum_head == "gaussian" and restored.config.obs_clip is None

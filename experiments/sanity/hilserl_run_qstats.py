@@ -9,10 +9,9 @@ return exceeds 1; a critic far above 1 is extrapolating. Reads the run's last sa
     python experiments/sanity/hilserl_run_qstats.py /tmp/hil_nooff --demos runs/sanity/demos_s0
 
 ``--eval M`` also evaluates the saved policy (or ``--policy-step N``'s checkpoint policy)
-deterministically on the first M development
-seeds (100,000...) twice: as it is, and with the vacuum forced to "hold" (the pose actor
-alone), which separates what the grasp critic's releases cost from what the pose actor can
-do.
+deterministically on the first M development seeds (100,000...) with the vacuum forced to
+"hold" (the pose actor alone; the policy as it is was evaluated at the run's checkpoints),
+which separates what the grasp critic's releases cost from what the pose actor can do.
 """
 
 from __future__ import annotations
@@ -83,7 +82,7 @@ def main(argv=None) -> dict:
     p.add_argument("--env", default="WindowInstall-A-v0")
     p.add_argument("--n-demos", type=int, default=50)
     p.add_argument("--eval", type=int, default=0, metavar="M",
-                   help="evaluate as is and with the vacuum held, M episodes each")
+                   help="evaluate the policy with the vacuum held, M episodes")
     p.add_argument("--policy-step", type=int, default=None, metavar="N",
                    help="evaluate policies/step_N.safetensors instead of the saved state's")
     p.add_argument("--json", type=Path, default=None, help="also write the result here")
@@ -108,10 +107,19 @@ def main(argv=None) -> dict:
     if agent.discrete_vacuum:
         with torch.no_grad():
             qg = agent.grasp_critic(agent._normalize(torch.as_tensor(obs))).numpy()
+            start = torch.as_tensor(np.stack([ep.observations[0] for ep in demos]),
+                                    dtype=torch.float32)
+            qg0 = agent.grasp_critic(agent._normalize(start)).numpy()
+        rtg0 = [agent.config.gamma ** (ep.T - 1) for ep in demos]
         out["grasp_q_on_demo_states"] = {"release_mean": float(qg[:, 0].mean()),
                                          "hold_mean": float(qg[:, 1].mean()),
                                          "frac_release_above_hold": float(np.mean(qg[:, 0] >
                                                                                   qg[:, 1]))}
+        # At the first state the demos' own discounted return is only gamma^(T-1).
+        out["grasp_q_on_demo_start_states"] = {
+            "release_mean": float(qg0[:, 0].mean()), "hold_mean": float(qg0[:, 1].mean()),
+            "frac_release_above_hold": float(np.mean(qg0[:, 0] > qg0[:, 1])),
+            "demo_return_mean": float(np.mean(rtg0))}
     out["tb"] = tb_scalars(a.run_dir)
     if a.eval:
         if a.policy_step is not None:
@@ -119,7 +127,6 @@ def main(argv=None) -> dict:
                 a.run_dir / "policies" / f"step_{a.policy_step:07d}.safetensors")
             agent = HILSERLAgent.from_policy_state_dict(policy)
             out["eval_policy_step"] = a.policy_step
-        out["eval_as_is"] = eval_summary(agent, a.env, a.eval)
         out["eval_vacuum_held"] = eval_summary(HoldVacuum(agent), a.env, a.eval)
     text = json.dumps(out, indent=1)
     print(text)
