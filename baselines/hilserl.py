@@ -3,7 +3,10 @@
 This is the ``hil-serl`` baseline of the paper's Table 1 (Section 4.3): a unimodal
 tanh-Gaussian actor and a LayerNorm critic ensemble trained by soft actor-critic on
 symmetric batches (half demonstrations, half online experience, as in RLPD), with offline
-pretraining, a non-updating warm start and installer takeovers. The harness
+pretraining, a non-updating warm start and installer takeovers. ``offline_steps=0`` drops
+the offline pretraining (HIL-SERL's and RLPD's own protocol); ``suction_loss_terminal``
+values a lost panel at 0 in the TD targets (an experiment of this benchmark, off by
+default; docs/baselines.md). The harness
 (``window_bench.harness.run``) owns the stages, the buffers and the takeovers; this module owns
 the learner and two rules the harness applies:
 
