@@ -97,7 +97,8 @@ def add_episodes(model: SAC, demos: list[EpisodeLog]) -> int:
     return added
 
 
-def make_sac(env, demos: list[EpisodeLog], seed: int, total_steps: int, **overrides) -> SAC:
+def make_sac(env, demos: list[EpisodeLog], seed: int, total_steps: int,
+             policy_kwargs: dict | None = None, **overrides) -> SAC:
     """SB3 ``SAC("MlpPolicy", env)`` with SB3's defaults and the demos in its replay buffer.
 
     Parameters
@@ -115,6 +116,9 @@ def make_sac(env, demos: list[EpisodeLog], seed: int, total_steps: int, **overri
         ``buffer_size = n_demo + total_steps`` transitions unless overridden, so it never
         wraps and the demos stay in it for the whole budget; while it does not wrap, SB3
         samples uniformly over the filled part, exactly as with its default size of 1e6.
+    policy_kwargs : dict, optional
+        SB3's ``policy_kwargs`` of the observation track (the pixel track's features
+        extractor, :mod:`window_bench.pixels.sac`); not an override of SAC's settings.
     **overrides
         Any ``SAC`` keyword (disclose it). ``buffer_size`` below ``n_demo + total_steps``,
         ``optimize_memory_usage=True`` (it stores ``next_obs`` as the following row, which
@@ -128,7 +132,8 @@ def make_sac(env, demos: list[EpisodeLog], seed: int, total_steps: int, **overri
                          "D_demo")
     n_demo = demo_transitions(demos)
     needed = n_demo + total_steps
-    kwargs = {"buffer_size": needed, "seed": seed, "device": "cpu", "verbose": 0}
+    kwargs = {"buffer_size": needed, "seed": seed, "device": "cpu", "verbose": 0,
+              **({"policy_kwargs": policy_kwargs} if policy_kwargs else {})}
     kwargs.update(overrides)
     if kwargs["buffer_size"] < needed:
         raise ValueError(f"buffer_size = {kwargs['buffer_size']} is not allowed: it must be "
@@ -179,6 +184,8 @@ class SACPolicy:
     """
 
     h = 1
+    #: SB3's features extractor of the policy (the pixel track's subclass sets its own).
+    features_extractor_class = FlattenExtractor
 
     def __init__(self, model: SAC | SB3SACPolicy):
         self.policy = model.policy if isinstance(model, SAC) else model
@@ -203,11 +210,12 @@ class SACPolicy:
         """The actor's weights, the spaces and the architecture, as plain data."""
         p = self.policy
         params = p._get_constructor_parameters()
-        if (params["features_extractor_class"] is not FlattenExtractor
+        if (params["features_extractor_class"] is not self.features_extractor_class
                 or params["features_extractor_kwargs"]):
-            raise ValueError(f"SACPolicy.policy_state_dict: features extractor "
+            raise ValueError(f"{type(self).__name__}.policy_state_dict: features extractor "
                              f"{params['features_extractor_class'].__name__} is not "
-                             f"supported (SB3's MlpPolicy uses FlattenExtractor)")
+                             f"supported (this policy uses "
+                             f"{self.features_extractor_class.__name__})")
         return {"obs_dim": int(p.observation_space.shape[0]),
                 "action_low": p.action_space.low.copy(), "action_high": p.action_space.high.copy(),
                 "architecture": plain({**{k: params[k] for k in (
@@ -226,7 +234,9 @@ class SACPolicy:
         low, high = np.asarray(state["action_low"]), np.asarray(state["action_high"])
         policy = SB3SACPolicy(spaces.Box(-np.inf, np.inf, (state["obs_dim"],), np.float32),
                               spaces.Box(low, high, dtype=np.float32), _no_learning_rate,
-                              activation_fn=activation, **state["architecture"])
+                              activation_fn=activation,
+                              features_extractor_class=cls.features_extractor_class,
+                              **state["architecture"])
         policy.actor.load_state_dict(state["actor"])
         policy.set_training_mode(False)
         return cls(policy)
@@ -238,10 +248,13 @@ class SACAgent(Agent):
 
     h = 1
     own_replay = True   # SB3's buffer, with D_demo pre-filled
+    #: The acting adapter and SB3's ``policy_kwargs`` (the pixel track sets its own).
+    policy_class = SACPolicy
+    policy_kwargs: dict | None = None
 
     def __init__(self, model: SAC):
         self.model = model
-        self.policy = SACPolicy(model)
+        self.policy = self.policy_class(model)
         # SB3's train() records its losses in the model's logger; nothing is written.
         model.set_logger(Logger(None, []))
 
@@ -249,7 +262,7 @@ class SACAgent(Agent):
     def create(cls, spec: AgentSpec) -> "SACAgent":
         no_overrides("sac", spec.overrides)
         return cls(make_sac(spaces_env(spec.obs_dim, spec.action_dim), spec.demos, spec.seed,
-                            spec.profile.budget_steps))
+                            spec.profile.budget_steps, cls.policy_kwargs))
 
     @property
     def gamma(self) -> float:
@@ -282,7 +295,7 @@ class SACAgent(Agent):
 
     @classmethod
     def from_policy_state_dict(cls, state: dict) -> SACPolicy:
-        return SACPolicy.from_policy_state_dict(state)
+        return cls.policy_class.from_policy_state_dict(state)
 
     def state_dict(self) -> dict:
         """Everything SB3's ``train`` reads, as plain data: the policy (actor, critics,
@@ -328,7 +341,8 @@ class SACAgent(Agent):
         reseeds the global RNGs: restore them afterwards (the harness does)."""
         model = SAC("MlpPolicy", spaces_env(state["obs_dim"], state["action_dim"]),
                     **{"buffer_size": state["buffer_size"], "seed": state["seed"],
-                       "device": "cpu", "verbose": 0, **state["overrides"]})
+                       "device": "cpu", "verbose": 0, "policy_kwargs": cls.policy_kwargs,
+                       **state["overrides"]})
         model.overrides = dict(state["overrides"])
         agent = cls(model)
         agent.load_state_dict(state)

@@ -378,8 +378,8 @@ def test_bench_run_on_the_pixel_track(tmp_path):
     a, b = (load_file(str(d / "policies" / "step_0000000.safetensors"))
             for d in (out, tmp_path / "again"))
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
-    with pytest.raises(ValueError, match="not available for the 'hilserl' agent"):
-        Run("hil-serl", ENV, "smoke", 0, tmp_path / "h", track="pixels")
+    with pytest.raises(ValueError, match="not available for the 'act' agent"):
+        Run("act", ENV, "smoke", 0, tmp_path / "h", track="pixels")
     with pytest.raises(W.WeightsError, match="no such file"):
         Run("qcfql", ENV, "smoke", 0, tmp_path / "w", track="pixels",
             encoder_weights=tmp_path / "absent.safetensors")
@@ -444,3 +444,169 @@ def test_replay_stores_features_as_float16_and_acts_as_on_the_fly(backbone):
     np.testing.assert_allclose(agent.embed(log.observations), agent.embed(fly), atol=2e-2, rtol=0)
     np.testing.assert_allclose(agent.act(log.observations, deterministic=True),
                                agent.act(fly, deterministic=True), atol=1e-2, rtol=0)
+
+
+# ---------------------------------------------------------------- HIL-SERL and SAC on pixels
+def _pixel_episode(T: int, seed: int, episode_id: int = 0):
+    """A random pixel-track episode (feature maps float16-exact, as PixelFeatures makes them)."""
+    from window_bench.data.steplog import EpisodeLog
+    from window_bench.pixels.encoder import FEATURE_VALUES
+
+    rng = np.random.default_rng(seed)
+    obs = rng.standard_normal((T + 1, OBS_DIM)).astype(np.float32)
+    obs[:, :FEATURE_VALUES] = np.abs(obs[:, :FEATURE_VALUES]).astype(np.float16)
+    actions = rng.uniform(-1, 1, (T, 7)).astype(np.float32)
+    actions[:, 6] = np.sign(actions[:, 6])
+    return EpisodeLog(observations=obs, actions=actions, rewards=rng.uniform(-1, 0, T),
+                      terminated=np.r_[np.zeros(T - 1, bool), True], truncated=np.zeros(T, bool),
+                      provenance=["demo"] * T, takeover_kind=[""] * T, episode_id=episode_id,
+                      seed=seed)
+
+
+def _pixel_spec(demos, seed: int = 0):
+    from window_bench.harness.agent import AgentSpec
+    from window_bench.harness.methods import PROFILES
+    from window_bench.harness.run import obs_normalizer
+
+    mean, std = obs_normalizer(np.concatenate([ep.observations for ep in demos]))
+    return AgentSpec(obs_dim=OBS_DIM, action_dim=7, h=1, seed=seed, profile=PROFILES["smoke"],
+                     demos=demos, obs_mean=mean, obs_std=std)
+
+
+def _same_actions(a, b, obs) -> None:
+    np.testing.assert_array_equal(a.act(obs, deterministic=True), b.act(obs, deterministic=True))
+
+
+@pytest.mark.parametrize("kind", ["hilserl-pixels", "sac-pixels"])
+def test_hilserl_and_sac_pixel_agents(kind):
+    """The pixel front end behind HIL-SERL and SB3 SAC: built from the harness's spec (the
+    proprioception normaliser from the demos), learning moves the aggregation, actions of
+    shape (1, 7), plain state and policy state round trips, and one seed, one result."""
+    from window_bench.data.replay import ChunkReplay
+    from window_bench.harness.agent import check_plain
+    from window_bench.harness.methods import agent_class
+    from window_bench.pixels.encoder import FEATURE_VALUES
+
+    cls = agent_class(kind)
+    assert cls.track == "pixels"
+    demos = [_pixel_episode(12, s, s) for s in (1, 2)]
+
+    def trained(seed=0):
+        torch.manual_seed(123)
+        agent = cls.create(_pixel_spec(demos, seed))
+        rb = ChunkReplay(24, 1, agent.gamma, seed=0, half_obs=FEATURE_VALUES)
+        for ep in demos:
+            rb.add_episode(ep)
+        first = {k: v.clone() for k, v in _encoders(agent)[0].state_dict().items()}
+        for _ in range(3):
+            metrics, steps = agent.learn(lambda: rb.sample(8))
+            assert steps >= 1 and all(np.isfinite(v) for v in metrics.values())
+        return agent, first
+
+    agent, first = trained()
+    encoders = _encoders(agent)
+    assert encoders and all(torch.equal(e.proprio_mean, encoders[0].proprio_mean) for e in encoders)
+    np.testing.assert_allclose(encoders[0].proprio_mean.numpy(),
+                               np.concatenate([ep.observations for ep in demos])[:, -18:].mean(0),
+                               rtol=1e-5, atol=1e-6)
+    assert not torch.equal(first["views.0.spatial.kernel"],
+                           encoders[0].state_dict()["views.0.spatial.kernel"])
+    obs = demos[0].observations[:3]
+    assert agent.act(obs[0], deterministic=True).shape == (1, 7)
+    assert agent.act(obs, deterministic=True).shape == (3, 1, 7)
+    agent.encoder_weights = "/x/w.safetensors"
+    for state, restore in ((agent.state_dict(), cls.from_state_dict),
+                           (agent.policy_state_dict(), cls.from_policy_state_dict)):
+        check_plain(state)
+        again = restore(state)
+        _same_actions(again, agent, obs)
+        assert again.encoder_weights == "/x/w.safetensors"
+    _same_actions(trained()[0], agent, obs)                  # one seed, one result
+    with pytest.raises(ValueError, match="obs_dim = 52"):
+        cls.create(dataclasses.replace(_pixel_spec(demos), obs_dim=52))
+
+
+def _encoders(agent) -> list:
+    if hasattr(agent, "model"):     # SB3: an extractor each for the actor, critics, targets
+        return [m for m in agent.model.policy.modules() if isinstance(m, PixelObsEncoder)]
+    return [agent.encoder]
+
+
+def test_the_supervisor_of_a_pixel_policy_reads_the_privileged_state(backbone):
+    """Takeovers on the pixel track: the installer watches the scene, so the supervisor gets
+    the flat state of the pixel env's current step, equal to a flat env's on the same episode."""
+    import gymnasium as gym
+
+    from window_bench.pixels.track import StateSupervisor, privileged_state
+
+    seen = []
+
+    class Recorder:
+        events = ["kept"]
+
+        def reset(self, env, seed=None):
+            seen.append(("reset", seed))
+
+        def intervene(self, obs, info):
+            seen.append(obs)
+            return None
+
+    pix, flat = make_pixel_env(ENV, backbone), gym.make(ENV, obs_mode="flat")
+    sup = StateSupervisor(Recorder())
+    pix.reset(seed=4)
+    sup.reset(pix, seed=4)
+    expected, _ = flat.reset(seed=4)
+    for t in range(3):
+        assert sup.intervene(None, {}) is None
+        np.testing.assert_array_equal(seen[-1], expected)
+        a = np.full(7, 0.2, np.float32)
+        pix.step(a)
+        expected, *_ = flat.step(a)
+    assert seen[0] == ("reset", 4) and sup.events == ["kept"]
+    assert privileged_state(pix).shape == (52,) and pix.unwrapped.obs_mode == "pixels"
+    pix.close()
+    flat.close()
+
+
+@pytest.mark.parametrize("method,kind", [("hil-serl", "hilserl-pixels"), ("sac", "sac-pixels")])
+def test_bench_run_hilserl_and_sac_on_the_pixel_track(tmp_path, monkeypatch, demos_root,
+                                                      method, kind):
+    """HIL-SERL and SB3 SAC through ``Run(track="pixels")`` end to end, at the smoke
+    profile cut to 120 env steps and one evaluation episode per checkpoint (the full smoke
+    profile is measured in docs/pixels.md): the pixel agent kind, Stage I, warm start,
+    online updates (HIL-SERL with takeovers), evaluation workers on the pixel env, and the
+    same seed twice gives the same checkpoints and bit-identical policy tensors."""
+    import json
+
+    from safetensors.torch import load_file
+
+    from window_bench.harness import methods
+    from window_bench.harness.run import Run
+    from window_bench.pixels import track
+
+    monkeypatch.setitem(methods.PROFILES, "smoke", dataclasses.replace(
+        methods.PROFILES["smoke"], budget_steps=120, warm_steps=20, checkpoint_every=120,
+        eval_episodes=1, max_episode_steps=60, utd=0.1))
+    real, cache = track.pixel_demos, {}
+
+    def once(eps, *args, **kwargs):    # both runs re-observe the same demos: once is enough
+        if "demos" not in cache:
+            cache["demos"] = real(eps, *args, **kwargs)
+        return cache["demos"]
+
+    monkeypatch.setattr(track, "pixel_demos", once)
+
+    def run(name):
+        r = Run(method, ENV, "smoke", 0, tmp_path / name, track="pixels", demos=demos_root,
+                progress=False, eval_workers=1).train()
+        return r, json.loads((tmp_path / name / "results.json").read_text())
+
+    (r, saved), (again, _) = run("a"), run("b")
+    assert saved["track"] == "pixels" and saved["method"]["agent"] == kind
+    assert [c["env_steps"] for c in r["checkpoints"]] == [0, 120]
+    assert r["final"]["grad_steps"] >= 10                      # online updates happened
+    drop = lambda cp: {k: v for k, v in cp.items() if k != "wall_clock_s"}  # noqa: E731
+    assert [drop(c) for c in again["checkpoints"]] == [drop(c) for c in r["checkpoints"]]
+    a, b = (load_file(str(tmp_path / d / "policies" / "step_0000120.safetensors"))
+            for d in ("a", "b"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)

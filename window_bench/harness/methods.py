@@ -69,6 +69,8 @@ AGENTS: dict[str, str | type] = {
     "act": "baselines.act:ACTAgent",
     "sac": "baselines.sac:SACAgent",
     "qcfql-pixels": "window_bench.pixels.agent:PixelQCFQL",   # bench run --track pixels
+    "hilserl-pixels": "window_bench.pixels.agent:PixelHILSERL",
+    "sac-pixels": "window_bench.pixels.sac:PixelSACAgent",
 }
 
 

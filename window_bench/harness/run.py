@@ -629,6 +629,10 @@ class Run:
         policy = AgentPolicy(self.agent, deterministic=False)
         budget = p.warm_steps if not m.online_updates else p.budget_steps
         sup = InstallerSupervisor(self.operator) if m.interventions else None
+        if sup is not None and self.track == "pixels":   # the installer sees the scene
+            from window_bench.pixels.track import StateSupervisor
+
+            sup = StateSupervisor(sup)
         with tqdm(total=budget, initial=self.c["env_steps"], desc="Stage II/III env", unit="step",
                   disable=not self.progress) as bar:
             while self.c["env_steps"] < budget:

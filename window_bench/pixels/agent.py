@@ -1,21 +1,32 @@
-"""``PixelQCFQL``: QC-FQL on the pixel track (cached backbone features + proprioception).
+"""The learners of the pixel track: a state-track learner behind the trainable pixel front end.
 
-The paper's networks take ``concat(view embeddings, proprioception)`` (Appendix): here a
+The paper's networks take ``concat(view embeddings, proprioception)`` (Appendix): a
 :class:`~window_bench.pixels.encoder.PixelObsEncoder` turns the flat observation of
 :class:`~window_bench.pixels.features.PixelFeatures` into those 82 values, and an unchanged
-:class:`baselines.qcfql.QCFQLAgent` (``obs_dim = 82``) learns on them.
+state-track learner (``obs_dim = 82``) learns on them. :class:`PixelAgent` owns what every
+such pairing shares (the front end, its optimiser, acting, plain-data states, the encoder
+weights named in the policy); a subclass says which learner sits behind it and how a
+gradient step trains the front end:
 
-Who trains the aggregation: the critic loss, as in HIL-SERL and DrQ; the actor and the flow
-teacher read the embedding with the gradient stopped, so the actor's Q-maximisation cannot
-reshape the representation. The TD target embeds ``s'`` with the current aggregation, the
-gradient stopped (as DrQ-v2 embeds its next observations; the target critic still
-stabilises the bootstrap), which lets one fold of the weights serve both. The backbone is not part of the agent: its features
-come cached in the batch, which is why an update costs about what a state-track update costs.
+* :class:`PixelQCFQL` - QC-FQL (``qcfql-pixels``);
+* :class:`PixelHILSERL` - HIL-SERL's SAC/RLPD learner with its grasp critic
+  (``hilserl-pixels``);
+* SB3 SAC uses the same front end as its features extractor
+  (:mod:`window_bench.pixels.sac`, ``sac-pixels``).
+
+Who trains the aggregation: the critic losses, as in HIL-SERL and DrQ; the actor (and
+QC-FQL's flow teacher) read the embedding with the gradient stopped, so the actor's
+Q-maximisation cannot reshape the representation. The TD target embeds ``s'`` with the
+current aggregation, the gradient stopped (as DrQ-v2 embeds its next observations; the target
+critic still stabilises the bootstrap), which lets one fold of the weights serve both. The
+backbone is not part of the agent: its features come cached in the batch, which is why an
+update costs about what a state-track update costs.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from importlib import import_module
 
 import numpy as np
 import torch
@@ -25,42 +36,55 @@ from window_bench.harness.agent import (Agent, AgentSpec, load_optimizer_state, 
 from window_bench.pixels.encoder import OBS_DIM, PROPRIO_DIM, PixelObsEncoder
 
 
-class PixelQCFQL(Agent):
-    """The harness's :class:`~window_bench.harness.agent.Agent` interface, as
-    :class:`baselines.qcfql.QCFQLAgent`, on flat pixel observations (``OBS_DIM`` values).
-    ``proprio_mean``/``proprio_std``: the fixed proprioception normaliser (18 values each).
-    ``encoder_weights``: the backbone's weights file (``None``: the shipped default), kept in
-    the saved states so that an evaluation worker builds the same observation."""
+def check_pixel_spec(name: str, spec: AgentSpec) -> list:
+    """The proprioception part of the harness's demo statistics (``obs_mean``/``obs_std``
+    cover the whole pixel observation), after checking the observation size."""
+    if spec.obs_dim != OBS_DIM:
+        raise ValueError(f"{name}: obs_dim = {spec.obs_dim}, the pixel observation has "
+                         f"{OBS_DIM} values (PixelFeatures)")
+    return [None if a is None else np.asarray(a)[-PROPRIO_DIM:]
+            for a in (spec.obs_mean, spec.obs_std)]
+
+
+class PixelAgent(Agent):
+    """The harness's :class:`~window_bench.harness.agent.Agent` interface for a state-track
+    learner (``self.agent``, built on ``PixelObsEncoder.out_dim`` inputs) behind a
+    :class:`PixelObsEncoder` (``self.encoder``) on flat pixel observations (``OBS_DIM``).
+
+    Subclasses set :attr:`inner` and implement ``__init__(config, seed, proprio_mean,
+    proprio_std)``, :meth:`config_of` and :meth:`update`. ``encoder_weights``: the backbone's
+    weights file (``None``: the shipped default), kept in the saved states so that an
+    evaluation worker builds the same observation."""
 
     track = "pixels"
     encoder_weights: str | None = None
+    #: ``"module:Class"`` of the state-track learner behind the front end.
+    inner = ""
 
-    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None):
-        from baselines.qcfql import QCFQLAgent, QCFQLConfig
-
-        config = QCFQLConfig() if config is None else config
+    def _build(self, seed: int, proprio_mean, proprio_std, make_agent, lr: float) -> None:
         self.obs_dim = OBS_DIM
         self.encoder = PixelObsEncoder(seed, proprio_mean, proprio_std)
-        self.agent = QCFQLAgent(PixelObsEncoder.out_dim, 7, config, seed=seed)
-        self.encoder_optimizer = torch.optim.Adam(self.encoder.parameters(), lr=config.lr)
+        self.agent = make_agent(PixelObsEncoder.out_dim)
+        self.encoder_optimizer = torch.optim.Adam(self.encoder.parameters(), lr=lr)
+
+    @classmethod
+    def inner_class(cls) -> type:
+        module, name = cls.inner.split(":")
+        return getattr(import_module(module), name)
+
+    @classmethod
+    def config_of(cls, inner_state: dict):
+        """The learner's config from its saved (policy) state."""
+        raise NotImplementedError
 
     @classmethod
     def make_config(cls, h: int, profile, overrides: dict):
-        from baselines.qcfql import QCFQLAgent
-
-        return QCFQLAgent.make_config(h, profile, overrides)
+        return cls.inner_class().make_config(h, profile, overrides)
 
     @classmethod
-    def create(cls, spec: AgentSpec) -> "PixelQCFQL":
-        """From the harness's spec: ``obs_mean``/``obs_std`` are the demo statistics of the
-        whole pixel observation; only their proprioception part is used."""
-        if spec.obs_dim != OBS_DIM:
-            raise ValueError(f"PixelQCFQL: obs_dim = {spec.obs_dim}, the pixel observation "
-                             f"has {OBS_DIM} values (PixelFeatures)")
-        cfg = cls.make_config(spec.h, spec.profile, spec.overrides)
-        stats = [None if a is None else np.asarray(a)[-PROPRIO_DIM:]
-                 for a in (spec.obs_mean, spec.obs_std)]
-        return cls(cfg, spec.seed, *stats)
+    def create(cls, spec: AgentSpec) -> "PixelAgent":
+        stats = check_pixel_spec(cls.__name__, spec)
+        return cls(cls.make_config(spec.h, spec.profile, spec.overrides), spec.seed, *stats)
 
     @property
     def config(self):
@@ -68,23 +92,82 @@ class PixelQCFQL(Agent):
 
     @property
     def h(self) -> int:
-        return self.agent.config.h
+        return int(self.agent.h)
 
     @property
     def gamma(self) -> float:
-        return self.agent.config.gamma
-
-    @property
-    def num_updates(self) -> int:
-        return self.agent.num_updates
+        return self.agent.gamma
 
     def embed(self, obs) -> torch.Tensor:
-        """Flat pixel observations (B, OBS_DIM) -> the 82-value agent input (no gradient)."""
+        """Flat pixel observations (B, OBS_DIM) -> the 82-value learner input (no gradient)."""
         with torch.no_grad():
             return self.encoder(torch.as_tensor(np.asarray(obs, np.float32)).reshape(-1, OBS_DIM))
 
     def learn(self, sample) -> tuple[dict[str, float], int]:
         return self.update(sample()), 1
+
+    def update(self, batch: Mapping) -> dict[str, float]:
+        raise NotImplementedError
+
+    def act(self, obs, deterministic: bool = False, **kwargs) -> np.ndarray:
+        """``(h, 7)`` for one observation, ``(B, h, 7)`` for a batch, as the learner's own."""
+        single = np.ndim(obs) == 1
+        u = self.agent.act(self.embed(obs).numpy(), deterministic=deterministic, **kwargs)
+        return u[0] if single and u.ndim == 3 else u
+
+    # ------------------------------------------------------------------ state (plain data)
+    def state_dict(self) -> dict:
+        return {**self.policy_state_dict(),
+                "agent": self.agent.state_dict(),
+                "encoder_optimizer": optimizer_state(self.encoder_optimizer)}
+
+    def load_state_dict(self, sd: dict) -> None:
+        self.agent.load_state_dict(sd["agent"])
+        self.encoder.load_state_dict(sd["encoder"])
+        self.encoder_weights = sd.get("encoder_weights")
+        load_optimizer_state(self.encoder_optimizer, sd["encoder_optimizer"])
+
+    @classmethod
+    def from_state_dict(cls, sd: dict) -> "PixelAgent":
+        out = cls(cls.config_of(sd["agent"]), seed=sd["agent"]["seed"])
+        out.load_state_dict(sd)
+        return out
+
+    def policy_state_dict(self) -> dict:
+        return {"agent": self.agent.policy_state_dict(), "encoder": module_state(self.encoder),
+                "encoder_weights": self.encoder_weights}
+
+    @classmethod
+    def from_policy_state_dict(cls, sd: dict) -> "PixelAgent":
+        out = cls(cls.config_of(sd["agent"]), seed=sd["agent"]["seed"])
+        out.agent = cls.inner_class().from_policy_state_dict(sd["agent"])
+        out.encoder.load_state_dict(sd["encoder"])
+        out.encoder_weights = sd.get("encoder_weights")
+        return out
+
+
+class PixelQCFQL(PixelAgent):
+    """:class:`baselines.qcfql.QCFQLAgent` on flat pixel observations.
+    ``proprio_mean``/``proprio_std``: the fixed proprioception normaliser (18 values each)."""
+
+    inner = "baselines.qcfql:QCFQLAgent"
+
+    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None):
+        from baselines.qcfql import QCFQLAgent, QCFQLConfig
+
+        config = QCFQLConfig() if config is None else config
+        self._build(seed, proprio_mean, proprio_std,
+                    lambda dim: QCFQLAgent(dim, 7, config, seed=seed), config.lr)
+
+    @classmethod
+    def config_of(cls, inner_state: dict):
+        from baselines.qcfql import _config_from
+
+        return _config_from(inner_state["config"])
+
+    @property
+    def num_updates(self) -> int:
+        return self.agent.num_updates
 
     def update(self, batch: Mapping) -> dict[str, float]:
         """One gradient step (critic + encoder aggregation, teacher, student) and the Polyak
@@ -111,40 +194,74 @@ class PixelQCFQL(Agent):
                 "q_mean": q.mean().item()}
 
     def act(self, obs, deterministic: bool = False, policy: str = "student") -> np.ndarray:
-        single = np.ndim(obs) == 1
-        u = self.agent.act(self.embed(obs).numpy(), deterministic=deterministic, policy=policy)
-        return u[0] if single and u.ndim == 3 else u
+        return super().act(obs, deterministic, policy=policy)
 
-    # ------------------------------------------------------------------ state (plain data)
-    def state_dict(self) -> dict:
-        return {**self.policy_state_dict(),
-                "agent": self.agent.state_dict(),
-                "encoder_optimizer": optimizer_state(self.encoder_optimizer)}
 
-    def load_state_dict(self, sd: dict) -> None:
-        self.agent.load_state_dict(sd["agent"])
-        self.encoder.load_state_dict(sd["encoder"])
-        self.encoder_weights = sd.get("encoder_weights")
-        load_optimizer_state(self.encoder_optimizer, sd["encoder_optimizer"])
+class PixelHILSERL(PixelAgent):
+    """:class:`baselines.hilserl.HILSERLAgent` (actor, critic ensemble, grasp critic) on flat
+    pixel observations; step-wise, takeovers also join D_demo, as on the state track.
 
-    @classmethod
-    def from_state_dict(cls, sd: dict) -> "PixelQCFQL":
-        from baselines.qcfql import _config_from
+    Each critic step embeds its own fresh batch, the critic and the grasp critic losses
+    train the aggregation (HIL-SERL's encoder belongs to its critics and its actor reads it
+    with the gradient stopped) and the aggregation's Adam steps with the critic's learning
+    rate; the actor and temperature step then reads the last batch embedded by the updated
+    aggregation, gradient stopped. The learner's own z-scoring is the identity here: the
+    embeddings are tanh outputs and the proprioception is normalised in the front end."""
 
-        out = cls(_config_from(sd["agent"]["config"]), seed=sd["agent"]["seed"])
-        out.load_state_dict(sd)
-        return out
+    inner = "baselines.hilserl:HILSERLAgent"
+    takeovers_to_demo = True
 
-    def policy_state_dict(self) -> dict:
-        return {"agent": self.agent.policy_state_dict(), "encoder": module_state(self.encoder),
-                "encoder_weights": self.encoder_weights}
+    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None):
+        from baselines.hilserl import HILSERLAgent, HILSERLConfig
+
+        config = HILSERLConfig() if config is None else config
+        self._build(seed, proprio_mean, proprio_std,
+                    lambda dim: HILSERLAgent(dim, 7, config, seed=seed), config.critic_lr)
 
     @classmethod
-    def from_policy_state_dict(cls, sd: dict) -> "PixelQCFQL":
-        from baselines.qcfql import QCFQLAgent, _config_from
+    def config_of(cls, inner_state: dict):
+        from baselines.hilserl import HILSERLConfig, _state_config
+        from window_bench.harness.agent import config_from_plain
 
-        out = cls(_config_from(sd["agent"]["config"]), seed=sd["agent"]["seed"])
-        out.agent = QCFQLAgent.from_policy_state_dict(sd["agent"])
-        out.encoder.load_state_dict(sd["encoder"])
-        out.encoder_weights = sd.get("encoder_weights")
-        return out
+        return config_from_plain(HILSERLConfig, _state_config(inner_state))
+
+    @property
+    def offline_steps(self) -> int | None:
+        return self.agent.offline_steps
+
+    def learn(self, sample) -> tuple[dict[str, float], int]:
+        return self.update(sample), self.config.critic_actor_ratio
+
+    def _embedded(self, batch, grad: bool):
+        """The learner's prepared batch on embeddings; with ``grad``, also the embedding
+        whose gradient trains the aggregation and the leaf the critic losses write it to."""
+        emb, next_emb = self.encoder.encode_pair(torch.as_tensor(batch["obs"]),
+                                                 torch.as_tensor(batch["next_obs"]))
+        b = self.agent._prepare(batch.exclude("obs", "next_obs").set("obs", emb.detach())
+                                .set("next_obs", next_emb))
+        if not grad:
+            return b, None, None
+        # The learner's critic and grasp-critic steps each run their own backward through
+        # the observation: a leaf collects both gradients, which then flow into the
+        # aggregation in one backward (its graph is used once).
+        z = self.agent._normalize(emb)
+        leaf = b["obs"] = z.detach().requires_grad_(True)
+        return b, z, leaf
+
+    def update(self, sample) -> dict[str, float]:
+        """``critic_actor_ratio`` critic steps, each on a fresh ``sample()`` and followed by
+        an aggregation step; then one actor and temperature step (see the class docstring)."""
+        agent = self.agent
+        infos, batch = [], None
+        for _ in range(agent.config.critic_actor_ratio):
+            batch = sample()
+            b, z, leaf = self._embedded(batch, grad=True)
+            self.encoder_optimizer.zero_grad(set_to_none=True)
+            infos.append(agent._critic_step(b))
+            z.backward(leaf.grad)
+            self.encoder_optimizer.step()
+        info = {k: float(np.mean([i[k] for i in infos])) for k in infos[0]}
+        with torch.no_grad():
+            b, _, _ = self._embedded(batch, grad=False)
+        info.update(agent._actor_temperature_step(b))
+        return info

@@ -18,7 +18,7 @@ import numpy as np
 TRACKS = ("state", "pixels")
 TRACK_LABELS = {"state": "privileged state", "pixels": "pixels (2 x RGB 128² + proprioception)"}
 #: Agent kind on the state track -> its kind on the pixel track (harness/methods.py AGENTS).
-PIXEL_KINDS = {"qcfql": "qcfql-pixels"}
+PIXEL_KINDS = {"qcfql": "qcfql-pixels", "hilserl": "hilserl-pixels", "sac": "sac-pixels"}
 
 
 def check_track(track: str) -> str:
@@ -53,6 +53,37 @@ def make_track_env(env_id: str, track: str, backbone=None, *, weights=None,
         backbone, _ = resolve_backbone(weights)
 
     return make_pixel_env(env_id, backbone, **kwargs)
+
+
+def privileged_state(env) -> np.ndarray:
+    """The flat 52-float state of a pixel-mode env's current step (what ``obs_mode="flat"``
+    would have returned), without rendering."""
+    base = env.unwrapped
+    mode, base.obs_mode = base.obs_mode, "flat"
+    try:
+        return base._observation()
+    finally:
+        base.obs_mode = mode
+
+
+class StateSupervisor:
+    """The installer supervising a pixel-track policy: it watches the scene (in the paper a
+    person at the robot), not the learner's features, so its cues and its takeover actions
+    read the privileged state of the env it was reset on. Everything else is the wrapped
+    supervisor's (e.g. :class:`~window_bench.installer.supervisor.InstallerSupervisor`)."""
+
+    def __init__(self, supervisor):
+        self.supervisor, self._env = supervisor, None
+
+    def reset(self, env, seed: int | None = None) -> None:
+        self._env = env
+        self.supervisor.reset(env, seed=seed)
+
+    def intervene(self, obs, info: dict):
+        return self.supervisor.intervene(privileged_state(self._env), info)
+
+    def __getattr__(self, name):
+        return getattr(self.supervisor, name)
 
 
 def pixel_demos(demos: list, env_id: str, backbone, progress: bool = False) -> list:
