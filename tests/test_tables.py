@@ -174,3 +174,38 @@ def test_leaderboard_names_the_track_and_keeps_tracks_apart(tmp_path):
     (d_pix / "results.json").write_text(json.dumps(bad))
     with pytest.raises(ValueError, match="track: 'depth' is not one of"):
         check_results(d_pix / "results.json")
+
+
+def test_readme_headline_block_is_replaced_between_its_markers_only(tmp_path):
+    from window_bench.harness.tables import HEADLINE_END, HEADLINE_START, update_readme
+
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{HEADLINE_START}\nold table\n{HEADLINE_END}\noutro\n")
+    assert update_readme(readme, "| new |")
+    assert readme.read_text() == f"intro\n{HEADLINE_START}\n| new |\n{HEADLINE_END}\noutro\n"
+    plain = tmp_path / "OTHER.md"
+    plain.write_text("no markers\n")
+    assert not update_readme(plain, "| new |") and plain.read_text() == "no markers\n"
+    assert not update_readme(tmp_path / "missing.md", "| new |")
+
+
+def test_headline_rows_come_from_test_seed_runs_only(tmp_path):
+    from window_bench.harness.tables import headline, load_paper, load_runs
+
+    runs = tmp_path / "runs"
+    for seed, rate in enumerate([0.6, 0.8]):
+        _results(runs, "qcfql-offline", "WindowInstall-A-v0", seed, rate)
+    text = headline(load_runs(runs), load_paper(), profile="smoke")
+    offline = next(line for line in text.splitlines() if "offline-only" in line)
+    complete = next(line for line in text.splitlines() if "complete pipeline" in line)
+    assert "**70**" in offline and "(n = 2)" in offline and "| 78 |" in offline
+    assert complete.count("not run yet") == 2
+
+
+def test_committed_readme_headline_equals_bench_tables():
+    """README.md's headline block is what bench tables makes of leaderboard/runs."""
+    from window_bench.harness.tables import HEADLINE_END, HEADLINE_START, headline, \
+        load_paper, load_runs
+
+    block = (REPO / "README.md").read_text().split(HEADLINE_START)[1].split(HEADLINE_END)[0]
+    assert block.strip() == headline(load_runs(REPO / "leaderboard" / "runs"), load_paper())

@@ -364,7 +364,7 @@ def cmd_tables(args) -> int:
     if not Path(args.runs).is_dir():
         print(f"error: --runs {args.runs}: no such directory", file=sys.stderr)
         return 2
-    pages = build(args.runs, args.out, figures=not args.no_figures)
+    pages = build(args.runs, args.out, figures=not args.no_figures, readme=args.readme)
     print(f"wrote {', '.join(sorted(pages))}{'' if args.no_figures else ', fig10/fig11 .png/.svg'}"
           f" under {args.out}")
     return 0
@@ -536,6 +536,9 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--runs", default="leaderboard/runs", help="runs root to read")
     tb.add_argument("--out", default="docs/results", help="where the pages and figures go")
     tb.add_argument("--no-figures", action="store_true", help="tables only")
+    tb.add_argument("--readme", default="README.md",
+                    help="also rewrite this file's headline block (between its "
+                         "'<!-- bench tables: headline -->' markers; skipped without them)")
     tb.set_defaults(func=cmd_tables)
     from window_bench.video import CAMERAS, FPS_RANGE, SIZE_RANGE
 

@@ -522,9 +522,64 @@ grids](sweep.md).
 """
 
 
+#: The README's headline rows: (label, method, agent-config overrides). The paper's QC-FQL is
+#: ``baselines.qcfql.PAPER_AGENT``, the row Table 2/3's grids run beside our default.
+HEADLINE_START, HEADLINE_END = "<!-- bench tables: headline -->", "<!-- /bench tables -->"
+
+
+def _headline_rows():
+    from baselines.qcfql import PAPER_AGENT
+
+    paper_agent = tuple(sorted((k, json.dumps(v)) for k, v in PAPER_AGENT.items()))
+    return (("Ours (complete pipeline)", "qcfql", ()),
+            ("QC-FQL as published (`PAPER_AGENT`)", "qcfql", paper_agent),
+            ("Ours (offline-only)", "qcfql-offline", ()),
+            ("HIL-SERL", "hil-serl", ()), ("ACT", "act", ()), ("SAC", "sac", ()))
+
+
+def headline(rows, paper, profile: str = "cpu") -> str:
+    """The README's headline table: final success of the key rows on A and B, ours (test
+    seeds, M = 100, mean [interval] over seeds, n) beside the paper's."""
+    lines = [f"| method | A: ours (state, {profile}) | A: paper | B: ours (state, {profile}) "
+             "| B: paper |",
+             "|---|---|---|---|---|"]
+    for label, method, overrides in _headline_rows():
+        cols = []
+        for table, setting in ((2, "A"), (3, "B")):
+            keys = [k for k in rows if (k.setting, k.method, k.overrides, k.track, k.profile,
+                                        k.seed_set, k.panel) ==
+                    (setting, method, overrides, "state", profile, "test", "0.5x0.5")
+                    and k.h == METHODS[method].h]
+            ss = rows[keys[0]] if keys else []
+            ours = (f"{cell([s.success for s in ss], 100, per_seed=False)} (n = {len(ss)})"
+                    if ss else "not run yet")
+            p = paper.get((table, setting, method, METHODS[method].h, "0.5x0.5"))
+            cols += [ours, _paper(p, "final_success_pct")]   # the paper ran one QC-FQL
+        lines.append(f"| {label} | " + " | ".join(cols) + " |")
+    return "\n".join(lines)
+
+
+def update_readme(path: str | os.PathLike, text: str) -> bool:
+    """Replace the block between the headline markers of ``path``; False (nothing written)
+    where the file or its markers are missing."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    old = path.read_text()
+    if HEADLINE_START not in old or HEADLINE_END not in old:
+        return False
+    head, rest = old.split(HEADLINE_START, 1)
+    tail = rest.split(HEADLINE_END, 1)[1]
+    new = f"{head}{HEADLINE_START}\n{text}\n{HEADLINE_END}{tail}"
+    if new != old:
+        atomic_write_text(path, new)
+    return True
+
+
 def build(root: str | os.PathLike = "leaderboard/runs", out: str | os.PathLike = "docs/results",
-          figures: bool = True) -> dict[str, str]:
-    """Regenerate every page (and figure) from ``root``; returns ``{file name: text}``."""
+          figures: bool = True, readme: str | os.PathLike | None = None) -> dict[str, str]:
+    """Regenerate every page (and figure) from ``root``, and the headline block of
+    ``readme`` when given; returns ``{file name: text}``."""
     root, out = Path(root), Path(out)
     rows = load_runs(root)
     paper = load_paper()
@@ -547,4 +602,6 @@ def build(root: str | os.PathLike = "leaderboard/runs", out: str | os.PathLike =
                                                 if k.panel == "0.5x0.5"))
     for name, text in pages.items():
         atomic_write_text(out / name, text)
+    if readme is not None:
+        update_readme(readme, headline(rows, paper))
     return pages
