@@ -92,7 +92,7 @@ def finished_cells(runs: Path) -> list[dict]:
         log = runs / "sweep-logs" / res.parent.parent.name / f"{res.parent.name}.json"
         sweep = json.loads(log.read_text()) if log.exists() else {}
         cells.append({"cell": f"{res.parent.parent.name}/{res.parent.name}",
-                      "method": r["method"], "profile": r["profile"],
+                      "method": r["method"]["name"], "profile": r["profile"]["name"],
                       "run_wall_s": r["final"]["wall_clock_s"],
                       "cell_wall_s": sweep.get("wall_s"),
                       "final_eval_s": (r.get("final_eval") or {}).get("wall_clock_s")})
