@@ -42,12 +42,70 @@ def summarize(rows: list[dict]) -> dict:
             "furthest_stage": dict(Counter(r["stage"] for r in fails)),
             "furthest_stage_step_median": (float(np.median([r["stage_step"] for r in fails]))
                                            if fails else None),
+            "closest_mm_median": (float(np.median([r["closest_mm"] for r in fails]))
+                                  if fails else None),
+            "progress_end_step_median": (float(np.median([r["progress_end_step"] for r in fails]))
+                                         if fails else None),
             "episodes_with_commanded_release": sum(r["commanded_releases"] > 0 for r in rows),
             "episodes_with_grip_break": sum(r["grip_breaks"] > 0 for r in rows),
             "episodes_with_vacuum_off_command": sum(r["vacuum_off_steps"] > 0 for r in rows),
             "final_position_error_mm_median": float(np.median([r["position_error_mm"]
                                                                for r in rows])),
-            "abs_action_mean": np.mean([r["abs_action_mean"] for r in rows], 0).round(4).tolist()}
+            "abs_action_mean": np.mean([r["abs_action_mean"] for r in rows], 0).round(4).tolist(),
+            "abs_action_mean_last50": np.mean([r["abs_action_mean_last50"] for r in rows],
+                                              0).round(4).tolist()}
+
+
+def stall_analysis(agent: ACTAgent, env_id: str, seed: int, demos) -> dict:
+    """One episode from ``seed``: after the last step that brought the panel 1 mm closer to
+    the seat, compare what the policy commands with what the demonstrations did in their
+    nearest states (z-scored observation distance): are those states in the data, and did
+    the demonstrator move there?"""
+    import gymnasium as gym
+
+    norm = agent.norm
+    z = lambda o: ((torch.as_tensor(np.asarray(o, np.float32)) - norm["obs_mean"])  # noqa: E731
+                   / norm["obs_std"]).numpy()
+    demo_obs = z(np.concatenate([ep.observations[:-1] for ep in demos]))
+    demo_act = np.concatenate([ep.actions for ep in demos])
+    env = gym.make(env_id, obs_mode="flat")
+    obs, info = env.reset(seed=int(seed))
+    agent.reset()
+    trace, closest, progress, done = [], info["position_error"], 0, False
+    while not done:
+        a = agent.act(obs)[0]
+        trace.append((z(obs), a))
+        obs, _, term, trunc, info = env.step(a)
+        done = term or trunc
+        if info["position_error"] < closest - 1e-3:
+            closest, progress = info["position_error"], len(trace)
+    env.close()
+    stalled = trace[progress:] or trace[-1:]
+    d = np.stack([((demo_obs - o) ** 2).sum(1) for o, _ in stalled])      # (S, N)
+    nearest = d.argmin(1)
+    # typical spacing of the demonstrations' own states, for scale
+    spacing = np.sqrt([np.partition(((demo_obs - demo_obs[i]) ** 2).sum(1), 1)[1]
+                       for i in range(0, len(demo_obs), 97)])
+    pose = slice(0, 6)
+    return {"seed": int(seed), "steps": len(trace), "progress_end_step": progress,
+            "closest_mm": round(1000 * float(closest), 2),
+            "stalled_steps": len(stalled),
+            "policy_abs_pose_action_stalled": float(np.abs([a[pose] for _, a in stalled]).mean()),
+            "demo_abs_pose_action_at_nearest": float(np.abs(demo_act[nearest, pose]).mean()),
+            "demo_abs_pose_action_all": float(np.abs(demo_act[:, pose]).mean()),
+            "nearest_demo_distance_median": float(np.median(np.sqrt(d.min(1)))),
+            "demo_neighbour_spacing_median": float(np.median(spacing)),
+            "nearest_demo_step_median": float(np.median(
+                [nearest_step(demos, j) for j in nearest]))}
+
+
+def nearest_step(demos, flat_index: int) -> int:
+    """Step index within its episode of the ``flat_index``-th demonstrated step."""
+    for ep in demos:
+        if flat_index < ep.T:
+            return flat_index
+        flat_index -= ep.T
+    raise IndexError(flat_index)
 
 
 def main(argv=None):
@@ -67,6 +125,8 @@ def main(argv=None):
     p.add_argument("--policy", default=None,
                    help="evaluate this ACT policy file instead of training one")
     p.add_argument("--dev", type=int, default=0, help="also evaluate on this many dev seeds")
+    p.add_argument("--stall", type=int, default=0,
+                   help="stall analysis (temporal ensembling) of this many training starts")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/sanity")
     a = p.parse_args(argv)
@@ -118,6 +178,10 @@ def main(argv=None):
             print(f"{set_name:12s} {mode:20s} {s['successes']}/{s['episodes']} "
                   f"Wilson [{s['wilson95'][0]:.3f}, {s['wilson95'][1]:.3f}] "
                   f"{s['failure_modes']} stage {s['furthest_stage']}", flush=True)
+    result["stall"] = [stall_analysis(agents["temporal_ensembling"], a.env, ep.seed, demos)
+                       for ep in demos[: a.stall]]
+    for row in result["stall"]:
+        print("stall", row, flush=True)
     result["provenance"] = provenance()
     Path(a.out).mkdir(parents=True, exist_ok=True)
     atomic_write_text(Path(a.out) / f"act_trainset_{name}.json", json.dumps(result, indent=1))
