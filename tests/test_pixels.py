@@ -334,8 +334,10 @@ def test_pixel_demos_replay_the_state_demos_exactly(backbone):
 
     assert track_agent_kind("qcfql", "pixels") == "qcfql-pixels"
     assert track_agent_kind("hilserl", "state") == "hilserl"
-    with pytest.raises(ValueError, match="not available for the 'hilserl' agent"):
-        track_agent_kind("hilserl", "pixels")
+    assert track_agent_kind("hilserl", "pixels") == "hilserl-pixels"
+    assert track_agent_kind("sac", "pixels") == "sac-pixels"
+    with pytest.raises(ValueError, match="not available for the 'act' agent"):
+        track_agent_kind("act", "pixels")
     assert isinstance(make_track_env(ENV, "state").observation_space, gym.spaces.Box)
 
 
