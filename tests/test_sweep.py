@@ -41,6 +41,8 @@ seeds = [0, 1]
     ('[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseed=[0]', "unknown key(s) seed"),
     ('profile = "smoke"', "declares no cells"),
     ('profile = [', "not valid TOML"),
+    ('track = "rgb"\n[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseeds=[0]',
+     "track = 'rgb'; allowed: state, pixels"),
     ('eval_workers = 0\n[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseeds=[0]',
      "eval_workers = 0; allowed: an integer in 1..64"),
 ])
@@ -81,6 +83,17 @@ def test_eval_workers_reach_every_cell_command(tmp_path):
     assert argv[argv.index("--eval-workers") + 1] == "1"
     assert "--eval-workers" not in cell_command(g.cells[0], _grid(tmp_path, GRID), tmp_path,
                                                 resume=True)
+
+
+def test_pixel_track_cells_are_named_apart_and_run_with_track_pixels(tmp_path):
+    g = _grid(tmp_path, 'track = "pixels"\n' + GRID)
+    c = next(c for c in g.cells if c.method == "qcfql" and c.seed == 0)
+    assert c.name == "WindowInstall-A-v0/qcfql-pixels-smoke-s0"
+    argv = cell_command(c, g, tmp_path, resume=False)
+    assert argv[argv.index("--track") + 1] == "pixels"
+    state = next(c for c in _grid(tmp_path, GRID).cells if c.method == "qcfql" and c.seed == 0)
+    assert "--track" not in cell_command(state, g, tmp_path, resume=False)
+    assert c.stage1_group != state.stage1_group          # a pixel Stage I is its own
 
 
 def test_only_selects_cells_by_name_and_rejects_a_pattern_matching_none(tmp_path):

@@ -60,7 +60,7 @@ from window_bench.harness.methods import get_method, get_profile
 from window_bench.harness.seeds import SEED_SETS
 
 GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "eval_workers",
-             "train", "evaluate"}
+             "track", "train", "evaluate"}
 TRAIN_KEYS = {"methods", "envs", "seeds", "h", "agent_config"}
 EVALUATE_KEYS = {"method", "env", "seeds", "on", "h", "agent_config"}
 LOGS = "sweep-logs"      # OUT/sweep-logs/<cell>.log and .json: nothing of ours in a run directory
@@ -83,6 +83,7 @@ class Cell:
     h: int | None = None                       # None: the method's own h
     agent_config: tuple = ()                   # sorted (key, value) pairs
     on: str | None = None
+    track: str = "state"                       # observation track: state / pixels
 
     @property
     def train_cell(self) -> "Cell":
@@ -93,6 +94,7 @@ class Cell:
         """``<env>/<run>`` for a training cell, ``<evaluated env>/<run>`` for an evaluation."""
         tag = f"-h{self.h}" if self.h is not None else ""
         tag += "".join(f"-{k}{v}" for k, v in self.agent_config)
+        tag += "" if self.track == "state" else f"-{self.track}"   # as bench leaderboard names it
         return f"{self.on or self.env_id}/{self.method}{tag}-{self.profile}-s{self.seed}"
 
     def path(self, out: Path) -> Path:
@@ -106,7 +108,8 @@ class Cell:
         m = get_method(self.method)
         if self.on is not None or not m.offline_pretrain or m.agent != "qcfql":
             return None
-        return (m.agent, self.env_id, self.seed, self.profile, self.h or m.h, self.agent_config)
+        return (m.agent, self.env_id, self.seed, self.profile, self.h or m.h, self.agent_config,
+                self.track)
 
 
 @dataclass(frozen=True)
@@ -160,6 +163,11 @@ def load_grid(path: str | os.PathLike) -> Grid:
     if seed_set not in SEED_SETS:
         _fail(path, f"seed_set = {seed_set!r}; allowed: {', '.join(SEED_SETS)}")
     operator = doc.get("operator", "average")
+    from window_bench.pixels.track import TRACKS
+
+    track = doc.get("track", "state")
+    if track not in TRACKS:
+        _fail(path, f"track = {track!r}; allowed: {', '.join(TRACKS)}")
     eval_workers = doc.get("eval_workers")
     if eval_workers is not None and (isinstance(eval_workers, bool) or
                                      not isinstance(eval_workers, int) or
@@ -218,7 +226,8 @@ def load_grid(path: str | os.PathLike) -> Grid:
         seeds = _list(path, block, spec.get("seeds"), "seeds", seed_ok(block))
         cfg = overrides(block, spec)
         for m, h, e, s in itertools.product(methods, h_list(block, spec, methods), envs, seeds):
-            cells.append(Cell(m, e, s, profile, h if h != get_method(m).h else None, cfg))
+            cells.append(Cell(m, e, s, profile, h if h != get_method(m).h else None, cfg,
+                              track=track))
     for i, spec in enumerate(doc.get("evaluate", [])):
         block = f"evaluate[{i}]"
         if set(spec) - EVALUATE_KEYS:
@@ -233,7 +242,8 @@ def load_grid(path: str | os.PathLike) -> Grid:
         cfg = overrides(block, spec)
         for h, s, target in itertools.product(h_list(block, spec, [method]), seeds, on):
             cells.append(Cell(method, spec["env"], s, profile,
-                              h if h != get_method(method).h else None, cfg, on=target))
+                              h if h != get_method(method).h else None, cfg, on=target,
+                              track=track))
     if not cells:
         _fail(path, "declares no cells (add a [[train]] or [[evaluate]] block)")
     unique = tuple(dict.fromkeys(cells))
@@ -307,6 +317,8 @@ def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool,
         argv += ["--stage1-cache", str(out / "stage1_cache")]
     if cell.h is not None:
         argv += ["--h", str(cell.h)]
+    if cell.track != "state":
+        argv += ["--track", cell.track]
     if cell.agent_config:
         argv += ["--agent-config", *(f"{k}={json.dumps(list(v) if isinstance(v, tuple) else v)}"
                                      for k, v in cell.agent_config)]
