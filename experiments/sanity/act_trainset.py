@@ -1,4 +1,4 @@
-"""Can the ACT pipeline imitate at all? Replay ACT from the initial states of its own
+r"""Can the ACT pipeline imitate at all? Replay ACT from the initial states of its own
 training demonstrations (train-set success), in both evaluation modes (temporal
 ensembling, the default, and open-loop chunks), optionally also on the dev seeds, with the
 diagnostics that say where failing episodes stall.
@@ -7,8 +7,8 @@ diagnostics that say where failing episodes stall.
     python experiments/sanity/act_trainset.py --profile smoke --demos 3 --steps 3000
     # a trained policy file (python -m baselines.act --policies DIR, or a bench run's
     # policies/): its first 20 training starts and 20 dev seeds
-    python experiments/sanity/act_trainset.py --policy DIR/step_0020000.safetensors \
-        --operator average --demos-dir DEMOS --demos 20 --dev 20
+    python experiments/sanity/act_trainset.py --policy DIR/step_0016000.safetensors \
+        --operator average --demos-dir DEMOS --demos 20 --train-demos 50 --dev 20 --stall 2
 
 Writes ``<out>/act_trainset_<profile>_<demos>x<steps>.json`` (or ``..._<policy name>.json``).
 """
@@ -131,9 +131,9 @@ def main(argv=None):
     p.add_argument("--out", default="runs/sanity")
     a = p.parse_args(argv)
     n_train = a.demos if a.train_demos is None else a.train_demos
-    if a.demos < 1 or a.steps < 1 or n_train < a.demos or a.dev < 0:
+    if a.demos < 1 or a.steps < 1 or n_train < a.demos or a.dev < 0 or not 0 <= a.stall <= a.demos:
         p.error(f"--demos {a.demos}, --steps {a.steps} must be >= 1, --train-demos {n_train} "
-                f">= --demos, --dev {a.dev} >= 0")
+                f">= --demos, --dev {a.dev} >= 0, --stall {a.stall} in [0, --demos]")
     if a.policy is not None and not Path(a.policy).is_file():
         p.error(f"--policy {a.policy}: no such file")
     if a.operator is None:
