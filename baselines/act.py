@@ -728,19 +728,20 @@ def _collect_demos(env_id: str, seeds) -> list[EpisodeLog]:
     return episodes
 
 
-def _rollout(agent: ACTAgent, env_id: str, seeds) -> list[dict]:
+def _rollout(agent: ACTAgent, env_id: str, seeds, max_steps: int | None = None) -> list[dict]:
     """Seeded evaluation episodes, ``agent.h`` actions executed per query; each row says how
     the episode ended and where it stalled (the step its furthest stage was reached, the
     closest the panel came to the seat and the last step that brought it 1 mm closer, the
     cause of any suction loss) and what the policy commanded (mean |action| per dim, over
     the episode and over its last 50 steps; steps with the vacuum command at or below the
-    environment's 0.5 threshold)."""
+    environment's 0.5 threshold). ``max_steps`` shortens the episodes (tests)."""
     import importlib
 
     import gymnasium as gym
 
     importlib.import_module("window_bench")  # registers the ids
-    env = gym.make(env_id, obs_mode="flat")
+    env = gym.make(env_id, obs_mode="flat",
+                   **({} if max_steps is None else {"max_episode_steps": max_steps}))
     rows = []
     for seed in seeds:
         obs, info = env.reset(seed=int(seed))

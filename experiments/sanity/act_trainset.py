@@ -56,7 +56,8 @@ def summarize(rows: list[dict]) -> dict:
                                               0).round(4).tolist()}
 
 
-def stall_analysis(agent: ACTAgent, env_id: str, seed: int, demos) -> dict:
+def stall_analysis(agent: ACTAgent, env_id: str, seed: int, demos,
+                   max_steps: int | None = None) -> dict:
     """One episode from ``seed``: after the last step that brought the panel 1 mm closer to
     the seat, compare what the policy commands with what the demonstrations did in their
     nearest states (z-scored observation distance): are those states in the data, and did
@@ -68,7 +69,8 @@ def stall_analysis(agent: ACTAgent, env_id: str, seed: int, demos) -> dict:
                    / norm["obs_std"]).numpy()
     demo_obs = z(np.concatenate([ep.observations[:-1] for ep in demos]))
     demo_act = np.concatenate([ep.actions for ep in demos])
-    env = gym.make(env_id, obs_mode="flat")
+    env = gym.make(env_id, obs_mode="flat",
+                   **({} if max_steps is None else {"max_episode_steps": max_steps}))
     obs, info = env.reset(seed=int(seed))
     agent.reset()
     trace, closest, progress, done = [], info["position_error"], 0, False
@@ -128,12 +130,16 @@ def main(argv=None):
     p.add_argument("--stall", type=int, default=0,
                    help="stall analysis (temporal ensembling) of this many training starts")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="episode step limit (default: the environment's, 600)")
     p.add_argument("--out", default="runs/sanity")
     a = p.parse_args(argv)
     n_train = a.demos if a.train_demos is None else a.train_demos
-    if a.demos < 1 or a.steps < 1 or n_train < a.demos or a.dev < 0 or not 0 <= a.stall <= a.demos:
+    if (a.demos < 1 or a.steps < 1 or n_train < a.demos or a.dev < 0
+            or not 0 <= a.stall <= a.demos or (a.max_steps is not None and a.max_steps < 1)):
         p.error(f"--demos {a.demos}, --steps {a.steps} must be >= 1, --train-demos {n_train} "
-                f">= --demos, --dev {a.dev} >= 0, --stall {a.stall} in [0, --demos]")
+                f">= --demos, --dev {a.dev} >= 0, --stall {a.stall} in [0, --demos], "
+                f"--max-steps {a.max_steps} >= 1")
     if a.policy is not None and not Path(a.policy).is_file():
         p.error(f"--policy {a.policy}: no such file")
     if a.operator is None:
@@ -171,15 +177,15 @@ def main(argv=None):
     for set_name, seeds in sets.items():
         for mode in MODES:
             t0 = time.perf_counter()
-            rows = _rollout(agents[mode], a.env, seeds)
+            rows = _rollout(agents[mode], a.env, seeds, a.max_steps)
             result[f"{set_name}/{mode}"] = {**summarize(rows), "rows": rows,
                                             "wall_s": round(time.perf_counter() - t0, 1)}
             s = result[f"{set_name}/{mode}"]
             print(f"{set_name:12s} {mode:20s} {s['successes']}/{s['episodes']} "
                   f"Wilson [{s['wilson95'][0]:.3f}, {s['wilson95'][1]:.3f}] "
                   f"{s['failure_modes']} stage {s['furthest_stage']}", flush=True)
-    result["stall"] = [stall_analysis(agents["temporal_ensembling"], a.env, ep.seed, demos)
-                       for ep in demos[: a.stall]]
+    result["stall"] = [stall_analysis(agents["temporal_ensembling"], a.env, ep.seed, demos,
+                                      a.max_steps) for ep in demos[: a.stall]]
     for row in result["stall"]:
         print("stall", row, flush=True)
     result["provenance"] = provenance()
