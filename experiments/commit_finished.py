@@ -5,7 +5,7 @@ when the session running it is cut off (the cells themselves resume with ``bench
     while sleep 300; do python experiments/commit_finished.py; done   # beside a sweep
 
 A training cell is finished when its ``results.json`` has a final evaluation. What is
-committed: ``results.json``, ``checkpoints.csv``, ``learning_curve.png``, ``manifest.json``,
+committed: ``results.json``, ``checkpoints.csv``, ``learning_curve.png``, ``manifest.json``, ``stage1.json`` (where Stage I came from: computed or the cache, and its wall clock),
 the final policy (acting weights only, with its sha256 in the manifest and in
 ``final_eval.policy_sha256``) and the sweep's ``sweep-logs/<cell>.json`` (exit code, wall
 clock). Never the training state, replay, TensorBoard events or intermediate policies
@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-KEEP = ("results.json", "checkpoints.csv", "learning_curve.png", "manifest.json")
+KEEP = ("results.json", "checkpoints.csv", "learning_curve.png", "manifest.json", "stage1.json")
 
 
 def finished_files(root: Path) -> list[Path]:
