@@ -130,6 +130,13 @@ def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
     assert list((out / "tb").iterdir())
     # Every training episode is accounted for (takeover steps only after the warm start).
     assert sum(e["steps"] for e in r["train_episodes"]) <= 400
+    # Each takeover's cue is recorded, from the supervisor's vocabulary (two takeovers can
+    # merge into one takeover segment across the hold-still steps to a chunk boundary).
+    from window_bench.installer.supervisor import CUES
+
+    for e in r["train_episodes"]:
+        assert len(e["takeover_cues"]) >= e["takeovers"] and bool(e["takeover_cues"]) == bool(e["takeovers"])
+        assert set(e["takeover_cues"]) <= set(CUES) | {"coverage"}
     capsys.readouterr()
     assert main(["eval", str(out / "policies" / "step_0000400.safetensors"), "--episodes", "2"]) == 0
     assert "qcfql (400 env steps) on WindowInstall-A-v0: " in capsys.readouterr().out

@@ -725,7 +725,10 @@ class Run:
         self.c["episodes"].append({
             "steps": log.T, "success": bool(rollout.info.get("is_success", log.terminated[-1])),
             "takeover_steps": int((log.provenance == "takeover").sum()),
-            "takeovers": takeover_count(log)})
+            "takeovers": takeover_count(log),
+            # what triggered each takeover (supervisor cue: suction_lost, wedging, stall,
+            # reinsertion, no_progress, coverage), for the intervention-rate anatomy
+            "takeover_cues": [cue for _, cue, _ in getattr(rollout.supervisor, "events", ())]})
 
     def _checkpoint_state(self) -> None:
         self.c["wall_clock_s"] = self._elapsed()
