@@ -148,6 +148,12 @@ class HILSERLConfig:
         Neither the paper nor HIL-SERL has it (they bootstrap through it, as the sparse
         acceptance reward defines no failure); state track only (the flat 52-float
         observation). Default False.
+    target_range : (float, float) or None
+        Clip every TD target (the critics' and the grasp critic's) to ``[lo, hi]``. This
+        task's reward is 1 on acceptance, which terminates, and 0 otherwise, so no return
+        lies outside ``[0, 1]``: ``target_range=[0,1]`` stops the bootstrap from carrying
+        values the task cannot produce. Neither RLPD nor HIL-SERL clips (a named departure,
+        measured in docs/baselines.md). None (default): no clip.
     offline_steps : int or None
         Stage I gradient steps (offline pretraining on D_demo only). None: the profile's
         ``offline_steps`` (the paper's protocol); 0: no Stage I, the learner starts with the
@@ -177,6 +183,7 @@ class HILSERLConfig:
     vacuum_head: str = "discrete"
     vacuum_epsilon: float = 0.0
     suction_loss_terminal: bool = False
+    target_range: tuple[float, float] | None = None
     offline_steps: int | None = None
 
     @property
@@ -243,6 +250,14 @@ class HILSERLConfig:
                              f"{VACUUM_HEADS}")
         if self.offline_steps is not None:
             _check_int("offline_steps", self.offline_steps, 0)
+        if self.target_range is not None:
+            bounds = (tuple(self.target_range) if isinstance(self.target_range, (list, tuple))
+                      else ())
+            if not (len(bounds) == 2 and all(real(v) for v in bounds)
+                    and bounds[0] < bounds[1]):
+                raise ValueError(f"target_range = {self.target_range!r} is not allowed: it "
+                                 f"must be two finite numbers [lo, hi] with lo < hi, or None")
+            object.__setattr__(self, "target_range", tuple(float(v) for v in bounds))
         if not (isinstance(self.vacuum_epsilon, numbers.Real)
                 and 0.0 <= self.vacuum_epsilon <= 1.0):
             raise ValueError(f"vacuum_epsilon = {self.vacuum_epsilon!r} is not allowed: it "
@@ -646,7 +661,8 @@ class HILSERLAgent(Agent):
         """The TD target ``y`` (B,) of one batch, with the current target critics:
         ``y = r + discount * (1 - terminal) * (min_{k in K} Qbar_k(s', a') - [alpha log pi])``
         with ``a' ~ pi(.|s')``, ``K`` = ``num_min`` members drawn without replacement and
-        the bracket only if ``backup_entropy``. Draws from the update generator."""
+        the bracket only if ``backup_entropy``, clipped to ``target_range`` when set. Draws
+        from the update generator."""
         return self._td_target(self._prepare(batch))
 
     @torch.no_grad()
@@ -660,7 +676,11 @@ class HILSERLAgent(Agent):
         next_v = next_q.min(dim=0).values
         if cfg.backup_entropy:
             next_v = next_v - self.log_alpha.exp() * next_log_prob
-        return b["reward"] + b["discount"] * (1.0 - b["terminal"]) * next_v
+        return self._clip_target(b["reward"] + b["discount"] * (1.0 - b["terminal"]) * next_v)
+
+    def _clip_target(self, y: torch.Tensor) -> torch.Tensor:
+        bounds = self.config.target_range
+        return y if bounds is None else y.clamp(*bounds)
 
     def grasp_td_target(self, batch: TensorDict) -> torch.Tensor:
         """The grasp critic's double-DQN target ``y_g`` (B,), with the current networks:
@@ -676,7 +696,7 @@ class HILSERLAgent(Agent):
     def _grasp_td_target(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
         best = self.grasp_critic(b["next_obs"]).argmax(dim=-1, keepdim=True)
         next_q = self.target_grasp_critic(b["next_obs"]).gather(-1, best).squeeze(-1)
-        return b["reward"] + b["discount"] * (1.0 - b["terminal"]) * next_q
+        return self._clip_target(b["reward"] + b["discount"] * (1.0 - b["terminal"]) * next_q)
 
     def _valid_mean(self, per_row: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         return (per_row * valid).sum() / valid.sum().clamp(min=1.0)
@@ -808,6 +828,8 @@ class HILSERLAgent(Agent):
         mine = dataclasses.asdict(self.config)
         theirs = _state_config(state)
         theirs["hidden"] = tuple(theirs["hidden"])
+        if theirs.get("target_range") is not None:
+            theirs["target_range"] = tuple(theirs["target_range"])
         if theirs != mine:
             diff = sorted(k for k in mine if mine[k] != theirs.get(k))
             raise ValueError(f"load_state_dict: config differs in {diff}: "
@@ -840,4 +862,5 @@ def _state_config(state: dict) -> dict:
     """The config of a :meth:`HILSERLAgent.state_dict`; states saved before the grasp critic
     and the observation clip were added are what they were: Gaussian vacuum, no clip."""
     return {"vacuum_head": "gaussian", "obs_clip": None, "vacuum_epsilon": 0.0,
-            "offline_steps": None, "suction_loss_terminal": False, **state["config"]}
+            "offline_steps": None, "suction_loss_terminal": False, "target_range": None,
+            **state["config"]}

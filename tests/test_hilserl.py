@@ -101,6 +101,10 @@ def params(module):
     ({"offline_steps": 1.5}, "offline_steps"),
     ({"offline_steps": True}, "offline_steps"),
     ({"suction_loss_terminal": 1}, "suction_loss_terminal"),
+    ({"target_range": [1.0, 0.0]}, "target_range"),
+    ({"target_range": [0.0]}, "target_range"),
+    ({"target_range": [0.0, float("inf")]}, "target_range"),
+    ({"target_range": 1.0}, "target_range"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -291,6 +295,36 @@ def test_suction_loss_terminal_ends_the_targets_where_the_panel_is_lost(env):
         HILSERLAgent(OBS_DIM + 1, config=HILSERLConfig(suction_loss_terminal=True))
 
 
+def test_target_range_clips_both_targets_and_survives_a_resume():
+    """Targets of r + 0.99 * 2 (critics) and r + 0.99 * 3 (grasp critic) lie above the
+    achievable return 1: with ``target_range=[0, 1]`` both are 1, a target of -0.99 is 0,
+    and a saved agent comes back with the same range."""
+    batch = _two_rows([0.5, 0.0], [False, False])
+    targets = {}
+    for bounds in (None, [0, 1]):
+        agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(8,), batch_size=2,
+                                                           num_critics=2, num_min=1,
+                                                           target_range=bounds))
+        _constant_target_critics(agent, [2.0, 2.0])
+        with torch.no_grad():
+            last = [m for m in agent.target_grasp_critic.modules()
+                    if isinstance(m, torch.nn.Linear)][-1]
+            last.weight.zero_()
+            last.bias.fill_(3.0)
+        targets[bounds is not None] = (agent.td_target(batch), agent.grasp_td_target(batch))
+        _constant_target_critics(agent, [-1.0, -1.0])
+        low = agent.td_target(_two_rows([0.0, 0.0], [False, False]))
+    torch.testing.assert_close(targets[False][0], torch.tensor([0.5 + GAMMA * 2, GAMMA * 2]))
+    torch.testing.assert_close(targets[True][0], torch.ones(2))
+    torch.testing.assert_close(targets[False][1], torch.tensor([0.5 + GAMMA * 3, GAMMA * 3]))
+    torch.testing.assert_close(targets[True][1], torch.ones(2))
+    torch.testing.assert_close(low, torch.zeros(2))
+    assert agent.config.target_range == (0.0, 1.0)
+    restored = HILSERLAgent.from_state_dict(agent.state_dict())
+    assert restored.config == agent.config
+    restored.load_state_dict(agent.state_dict())
+
+
 def test_td_target_min_over_random_subset():
     """RLPD: min over 2 of 4 members drawn without replacement: the largest member can
     never be the min, every other member sometimes is."""
@@ -427,7 +461,7 @@ def test_states_saved_before_the_grasp_critic_load_as_gaussian():
                                                      vacuum_head="gaussian", obs_clip=None))
     state = old.state_dict()
     for key in ("vacuum_head", "obs_clip", "vacuum_epsilon", "offline_steps",
-                "suction_loss_terminal"):
+                "suction_loss_terminal", "target_range"):
         del state["config"][key]
     restored = HILSERLAgent.from_state_dict(state)
     assert restored.config.vacuum_head == "gaussian" and restored.config.obs_clip is None
