@@ -521,7 +521,9 @@ class ACTAgent(Agent):
     def update(self, batch: dict) -> dict[str, float]:
         """One AdamW step on ``act_loss``; returns ``{"loss", "l1", "kl", "grad_step"}``."""
         norm = self._need_norm()
-        obs = torch.as_tensor(np.asarray(batch["obs"]), dtype=torch.float32)
+        obs = batch["obs"]   # a tensor with a graph on the pixel track: its front end trains too
+        obs = (obs.float() if isinstance(obs, torch.Tensor)
+               else torch.as_tensor(np.asarray(obs), dtype=torch.float32))
         actions = torch.as_tensor(np.asarray(batch["actions"]), dtype=torch.float32)
         is_pad = torch.as_tensor(np.asarray(batch["is_pad"]), dtype=torch.bool)
         B, k = is_pad.shape[0], self.config.chunk

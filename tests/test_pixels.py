@@ -336,8 +336,9 @@ def test_pixel_demos_replay_the_state_demos_exactly(backbone):
     assert track_agent_kind("hilserl", "state") == "hilserl"
     assert track_agent_kind("hilserl", "pixels") == "hilserl-pixels"
     assert track_agent_kind("sac", "pixels") == "sac-pixels"
-    with pytest.raises(ValueError, match="not available for the 'act' agent"):
-        track_agent_kind("act", "pixels")
+    assert track_agent_kind("act", "pixels") == "act-pixels"
+    with pytest.raises(ValueError, match="not available for the 'bc' agent"):
+        track_agent_kind("bc", "pixels")
     assert isinstance(make_track_env(ENV, "state").observation_space, gym.spaces.Box)
 
 
@@ -354,8 +355,8 @@ def test_the_shipped_default_encoder_loads_with_its_record():
 
 def test_bench_run_on_the_pixel_track(tmp_path):
     """``Run(track="pixels")``: the pixel agent kind, demos re-observed, evaluation workers
-    on the pixel env, the track and the encoder in results.json; a method whose agent has no
-    pixel front end, and a missing weights file, are refused before any work."""
+    on the pixel env, the track and the encoder in results.json; an unknown track and a
+    missing weights file are refused before any work."""
     import json
 
     from window_bench.harness.run import Run
@@ -380,8 +381,8 @@ def test_bench_run_on_the_pixel_track(tmp_path):
     a, b = (load_file(str(d / "policies" / "step_0000000.safetensors"))
             for d in (out, tmp_path / "again"))
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
-    with pytest.raises(ValueError, match="not available for the 'act' agent"):
-        Run("act", ENV, "smoke", 0, tmp_path / "h", track="pixels")
+    with pytest.raises(ValueError, match="track='rgb'"):
+        Run("act", ENV, "smoke", 0, tmp_path / "h", track="rgb")
     with pytest.raises(W.WeightsError, match="no such file"):
         Run("qcfql", ENV, "smoke", 0, tmp_path / "w", track="pixels",
             encoder_weights=tmp_path / "absent.safetensors")
@@ -612,3 +613,89 @@ def test_bench_run_hilserl_and_sac_on_the_pixel_track(tmp_path, monkeypatch, dem
     a, b = (load_file(str(tmp_path / d / "policies" / "step_0000120.safetensors"))
             for d in ("a", "b"))
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+# ---------------------------------------------------------------- ACT on pixels
+def test_act_pixel_agent_trains_its_front_end_on_cached_demo_features():
+    """``act-pixels``: ACT's tokens are (proprioception, both view embeddings); its loss trains
+    the aggregation; the demos' feature maps are kept once as float16 and an update reads
+    exactly them; exact state and policy round trips; wrong demos are refused in one line."""
+    from window_bench.harness.agent import check_plain
+    from window_bench.harness.methods import agent_class
+    from window_bench.pixels.encoder import FEATURE_VALUES
+
+    cls = agent_class("act-pixels")
+    demos = [_pixel_episode(15, s, s) for s in (1, 2)]
+    agent = cls.create(_pixel_spec(demos))
+    agent.attach_demos(demos)
+    assert agent.config.robot_dim == PROPRIO_DIM and agent.offline_steps == 100
+    assert agent._demo_maps.dtype == torch.float16 and agent._demo_maps.shape == (2, 30, VIEW_FEATURES)
+    np.testing.assert_array_equal(agent._demo_maps[1, 15].float().numpy(),
+                                  demos[1].observations[0, VIEW_FEATURES:FEATURE_VALUES])
+    emb = torch.arange(2 * EMBED_DIM + PROPRIO_DIM, dtype=torch.float32)[None]
+    assert cls.tokens(emb)[0, :PROPRIO_DIM].tolist() == list(range(2 * EMBED_DIM, emb.shape[1]))
+    first = agent.encoder.views[1].spatial.kernel.clone()
+    for _ in range(3):
+        metrics, steps = agent.learn(None)
+        assert steps == 1 and np.isfinite(metrics["loss"])
+    assert not torch.equal(first, agent.encoder.views[1].spatial.kernel)
+    obs = demos[0].observations[4]
+    agent.reset()
+    assert agent.act(obs).shape == (1, 7)
+    for state, restore in ((agent.state_dict(), cls.from_state_dict),
+                           (agent.policy_state_dict(), cls.from_policy_state_dict)):
+        check_plain(state)
+        again = restore(state)
+        agent.reset(), again.reset()
+        _same_actions(again, agent, obs)
+    resumed = cls.from_state_dict(agent.state_dict())
+    resumed.attach_demos(demos)
+    assert resumed.learn(None)[0] == agent.learn(None)[0]           # an exact resume
+    with pytest.raises(ValueError, match="one observation"):
+        agent.act(demos[0].observations[:2])
+    with pytest.raises(ValueError, match=r"expected \(T\+1, 16402\)"):
+        agent.attach_demos([dataclasses.replace(demos[0], observations=np.zeros((16, 52)))])
+    bad = dataclasses.replace(demos[0], observations=demos[0].observations + np.float32(1e-4))
+    with pytest.raises(ValueError, match="not float16-exact"):
+        agent.attach_demos([bad])
+
+
+def test_bench_run_act_on_the_pixel_track(tmp_path, monkeypatch, demos_root):
+    """``bench run --method act --track pixels`` end to end at the smoke profile (ACT's 100
+    offline steps; one evaluation episode of at most 60 steps): the ``act-pixels`` agent,
+    the frozen backbone bit-identical after training, and the same seed twice gives the
+    same checkpoint and bit-identical policy tensors."""
+    import json
+
+    from safetensors.torch import load_file
+
+    from window_bench.harness import methods
+    from window_bench.harness.run import Run
+
+    monkeypatch.setitem(methods.PROFILES, "smoke", dataclasses.replace(
+        methods.PROFILES["smoke"], eval_episodes=1, max_episode_steps=60))
+
+    def run(name):
+        r = Run("act", ENV, "smoke", 0, tmp_path / name, track="pixels", demos=demos_root,
+                progress=False, eval_workers=1)
+        before = {k: v.clone() for k, v in r.backbone.state_dict().items()}
+        out = r.train()
+        after = r.backbone.state_dict()
+        assert not any(p.requires_grad for p in r.backbone.parameters())
+        assert all(torch.equal(before[k], after[k]) for k in before)     # frozen
+        return out, json.loads((tmp_path / name / "results.json").read_text())
+
+    (r, saved), (again, _) = run("a"), run("b")
+    assert saved["track"] == "pixels" and saved["method"]["agent"] == "act-pixels"
+    assert [c["env_steps"] for c in r["checkpoints"]] == [0]
+    assert r["final"]["grad_steps"] == 100
+    drop = lambda cp: {k: v for k, v in cp.items() if k != "wall_clock_s"}  # noqa: E731
+    assert [drop(c) for c in again["checkpoints"]] == [drop(c) for c in r["checkpoints"]]
+    a, b = (load_file(str(tmp_path / d / "policies" / "step_0000000.safetensors"))
+            for d in ("a", "b"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    from window_bench.harness.files import load_state
+
+    policy, _ = load_state(tmp_path / "a" / "policies" / "step_0000000.safetensors", "policy")
+    assert "views.0.spatial.kernel" in policy["encoder"]          # the trained aggregation
+    assert policy["agent"]["config"]["robot_dim"] == PROPRIO_DIM

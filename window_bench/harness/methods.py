@@ -71,6 +71,7 @@ AGENTS: dict[str, str | type] = {
     "qcfql-pixels": "window_bench.pixels.agent:PixelQCFQL",   # bench run --track pixels
     "hilserl-pixels": "window_bench.pixels.agent:PixelHILSERL",
     "sac-pixels": "window_bench.pixels.sac:PixelSACAgent",
+    "act-pixels": "window_bench.pixels.agent:PixelACT",
 }
 
 

@@ -11,6 +11,7 @@ gradient step trains the front end:
 * :class:`PixelQCFQL` - QC-FQL (``qcfql-pixels``);
 * :class:`PixelHILSERL` - HIL-SERL's SAC/RLPD learner with its grasp critic
   (``hilserl-pixels``);
+* :class:`PixelACT` - ACT, trained offline on D_demo (``act-pixels``);
 * SB3 SAC uses the same front end as its features extractor
   (:mod:`window_bench.pixels.sac`, ``sac-pixels``).
 
@@ -25,6 +26,7 @@ update costs about what a state-track update costs.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from importlib import import_module
 
@@ -33,7 +35,8 @@ import torch
 
 from window_bench.harness.agent import (Agent, AgentSpec, load_optimizer_state, module_state,
                                         optimizer_state)
-from window_bench.pixels.encoder import OBS_DIM, PROPRIO_DIM, PixelObsEncoder
+from window_bench.pixels.encoder import (FEATURE_VALUES, OBS_DIM, PROPRIO_DIM, VIEW_FEATURES,
+                                         VIEWS, PixelObsEncoder)
 
 
 def check_pixel_spec(name: str, spec: AgentSpec) -> list:
@@ -265,3 +268,120 @@ class PixelHILSERL(PixelAgent):
             b, _, _ = self._embedded(batch, grad=False)
         info.update(agent._actor_temperature_step(b))
         return info
+
+
+class PixelACT(PixelAgent):
+    """:class:`baselines.act.ACTAgent` on flat pixel observations (``act-pixels``), trained
+    offline on D_demo only, as on the state track.
+
+    ACT's transformer reads the 82 front-end values as its two observation tokens: the
+    normalised proprioception (the robot token, the one ACT's CVAE encoder also sees, as
+    ACT's ``qpos``) and both views' embeddings (the image token). ACT's loss trains the
+    aggregation end to end with the transformer (ACT trains its image encoder too; here the
+    backbone stays frozen), with AdamW at ACT's learning rate and weight decay. ACT's own
+    observation z-scoring is the identity on this track: the proprioception is normalised
+    in the front end by the demos' statistics and the embeddings are tanh outputs that move
+    while the aggregation trains; its action normaliser is fitted on the demos as ever.
+
+    The backbone ran once per demo step when the harness re-observed the demos;
+    :meth:`attach_demos` keeps those feature maps as contiguous float16 tensors, one per view
+    (lossless: ``PixelFeatures`` rounds them to float16), and an update gathers its batch's
+    rows and widens them to float32 in one operation per view."""
+
+    inner = "baselines.act:ACTAgent"
+
+    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None):
+        from baselines.act import ACT_PROFILES, ACTAgent
+
+        config = ACT_PROFILES["paper"] if config is None else config
+        self._build(seed, proprio_mean, proprio_std,
+                    lambda dim: ACTAgent(dim, 7, config, seed=seed), config.lr)
+        self.encoder_optimizer = torch.optim.AdamW(self.encoder.parameters(), lr=config.lr,
+                                                   weight_decay=config.weight_decay)
+
+    @classmethod
+    def make_config(cls, h: int, profile, overrides: dict):
+        """ACT's profile sizes; the robot token is the proprioception (first in
+        :meth:`tokens`) unless ``--agent-config robot_dim=...`` says otherwise."""
+        config = super().make_config(h, profile, overrides)
+        return config if "robot_dim" in overrides else dataclasses.replace(
+            config, robot_dim=PROPRIO_DIM)
+
+    @classmethod
+    def create(cls, spec: AgentSpec) -> "PixelACT":
+        agent = super().create(spec)
+        actions = np.concatenate([np.asarray(ep.actions) for ep in spec.demos]).astype(np.float64)
+        dim = PixelObsEncoder.out_dim
+        agent.agent.norm = {
+            "obs_mean": torch.zeros(dim), "obs_std": torch.ones(dim),
+            "act_mean": torch.tensor(actions.mean(0), dtype=torch.float32),
+            "act_std": torch.tensor(np.maximum(actions.std(0), agent.config.std_floor),
+                                    dtype=torch.float32)}
+        return agent
+
+    @classmethod
+    def config_of(cls, inner_state: dict):
+        from baselines.act import ACTConfig
+
+        return ACTConfig(**inner_state["config"])
+
+    @property
+    def offline_steps(self) -> int:
+        return self.agent.offline_steps
+
+    @staticmethod
+    def tokens(emb: torch.Tensor) -> torch.Tensor:
+        """Front-end output (view embeddings, proprioception) -> ACT's order (robot token
+        first, then the image token)."""
+        return torch.cat([emb[:, -PROPRIO_DIM:], emb[:, :-PROPRIO_DIM]], dim=1)
+
+    def attach_demos(self, demos) -> None:
+        """ACT's chunk stack of D_demo (actions, padding, offsets; its observations are the
+        proprioception) and the demos' feature maps as float16, ``(views, steps, 8,192)``."""
+        from baselines.act import _stack_episodes
+
+        for i, ep in enumerate(demos):
+            if np.shape(ep.observations)[1:] != (OBS_DIM,):
+                raise ValueError(f"PixelACT: demo {i} has observations of shape "
+                                 f"{np.shape(ep.observations)}, expected (T+1, {OBS_DIM})")
+        self._demo_stack = _stack_episodes(
+            [dataclasses.replace(ep, observations=np.asarray(ep.observations)[:, FEATURE_VALUES:])
+             for ep in demos], PROPRIO_DIM, self.config.chunk)
+        self._demo_maps = torch.empty(len(VIEWS), int(self._demo_stack["lengths"].sum()),
+                                      VIEW_FEATURES, dtype=torch.float16)
+        for ep, row in zip(demos, self._demo_stack["obs_offset"]):
+            maps = torch.from_numpy(np.asarray(ep.observations[:-1, :FEATURE_VALUES], np.float32))
+            half = maps.to(torch.float16)
+            if not torch.equal(half.float(), maps):
+                raise ValueError(f"PixelACT: demo {ep.episode_id}'s feature maps are not "
+                                 f"float16-exact; they are not PixelFeatures observations")
+            self._demo_maps[:, row:row + ep.T] = half.view(ep.T, len(VIEWS), -1).transpose(0, 1)
+
+    def learn(self, sample) -> tuple[dict[str, float], int]:
+        """One :meth:`update` on ``batch_size`` chunks of D_demo drawn with ACT's own
+        generator (the harness's ``sample`` is not used, as on the state track)."""
+        from baselines.act import _draw
+
+        return self.update(_draw(self._demo_stack, self.config.batch_size, self.agent.rng)), 1
+
+    def update(self, batch: Mapping) -> dict[str, float]:
+        """One AdamW step of ACT and of the aggregation on a batch of :func:`baselines.act._draw`
+        (``obs`` = the proprioception; ``episode`` and ``start`` locate the feature maps)."""
+        rows = torch.as_tensor(self._demo_stack["obs_offset"][batch["episode"]] + batch["start"])
+        maps = self._demo_maps.index_select(1, rows).float()
+        emb = self.encoder.fuse(list(maps), torch.as_tensor(batch["obs"]))
+        self.encoder_optimizer.zero_grad(set_to_none=True)
+        info = self.agent.update({**batch, "obs": self.tokens(emb)})
+        self.encoder_optimizer.step()
+        return info
+
+    def act(self, obs, deterministic: bool = True) -> np.ndarray:
+        """ACT's next actions for one observation (its chunk, or one ensembled step)."""
+        if np.ndim(obs) != 1:
+            raise ValueError(f"PixelACT.act: one observation of shape ({OBS_DIM},) at a time "
+                             f"(temporal ensembling keeps per-episode history), got "
+                             f"{np.shape(obs)}")
+        return self.agent.act(self.tokens(self.embed(obs))[0].numpy(), deterministic)
+
+    def reset(self) -> None:
+        self.agent.reset()

@@ -200,6 +200,12 @@ class PixelObsEncoder(nn.Module):
 
     def forward(self, obs: torch.Tensor, weights: list | None = None) -> torch.Tensor:
         maps, proprio = split_observation(obs.float())
+        return self.fuse(maps, proprio, weights)
+
+    def fuse(self, maps, proprio: torch.Tensor, weights: list | None = None) -> torch.Tensor:
+        """The 82 values from the parts of the observation: one float32 ``(B, 8,192)`` (or
+        ``(B, 512, 4, 4)``) map per view and the raw ``(B, 18)`` proprioception; ``weights``:
+        the views' :meth:`ViewAggregation.folded_weight`, if computed already."""
         weights = weights or [None] * len(self.views)
         embeds = [agg(m, w) for agg, m, w in zip(self.views, maps, weights)]
         x = ((proprio - self.proprio_mean) / self.proprio_std).clamp(-10.0, 10.0)

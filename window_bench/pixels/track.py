@@ -18,7 +18,8 @@ import numpy as np
 TRACKS = ("state", "pixels")
 TRACK_LABELS = {"state": "privileged state", "pixels": "pixels (2 x RGB 128² + proprioception)"}
 #: Agent kind on the state track -> its kind on the pixel track (harness/methods.py AGENTS).
-PIXEL_KINDS = {"qcfql": "qcfql-pixels", "hilserl": "hilserl-pixels", "sac": "sac-pixels"}
+PIXEL_KINDS = {"qcfql": "qcfql-pixels", "hilserl": "hilserl-pixels", "sac": "sac-pixels",
+               "act": "act-pixels"}
 
 
 def check_track(track: str) -> str:
