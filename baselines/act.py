@@ -110,6 +110,11 @@ class ACTConfig:
     std_floor: float = 1e-2
     """Lower bound of the z-score standard deviations (constant dims such as the vacuum in
     setting A)."""
+    obs_clip: float = 0.0
+    """Bound on the z-scored observations (QC-FQL clips at 10); 0 = no clipping (ACT)."""
+    loss: str = "l1"
+    """Reconstruction term: ``"l1"`` (ACT) or ``"l2"`` (squared error, a departure measured in
+    docs/act.md "Why ACT fails where flow BC succeeds")."""
 
     def __post_init__(self):
         for name in ("chunk", "d_model", "n_heads", "ff", "enc_layers", "vae_enc_layers",
@@ -131,6 +136,11 @@ class ACTConfig:
             if not ok:
                 raise ValueError(f"ACTConfig.{name} = {v!r} is not allowed: must lie in "
                                  f"[{lo}, {hi})")
+        if self.loss not in ("l1", "l2"):
+            raise ValueError(f"ACTConfig.loss = {self.loss!r} is not allowed: use 'l1' or 'l2'")
+        if not (_is_real(self.obs_clip) and self.obs_clip >= 0):
+            raise ValueError(f"ACTConfig.obs_clip = {self.obs_clip!r} is not allowed: must be "
+                             f"0 (no clipping) or a finite number > 0")
         for name, hi in (("lr", 1.0), ("std_floor", math.inf)):
             v = getattr(self, name)
             if not (_is_real(v) and 0.0 < v <= hi):
@@ -177,13 +187,15 @@ def kl_to_prior(mu: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
 
 
 def act_loss(pred: torch.Tensor, target: torch.Tensor, is_pad: torch.Tensor,
-             mu: torch.Tensor, logvar: torch.Tensor,
-             kl_weight: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+             mu: torch.Tensor, logvar: torch.Tensor, kl_weight: float,
+             loss: str = "l1") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """ACT's CVAE loss: ``l1 + kl_weight * kl``; returns ``(loss, l1, kl)``.
 
     ``pred`` / ``target`` are (B, k, A) normalised actions, ``is_pad`` (B, k) is True on
     steps past the episode end. The L1 term is the mean absolute error over the real
     (non-padded) entries only: whatever sits at padded positions, even NaN, has no effect.
+    ``loss="l2"`` trains on the mean squared error instead (the returned ``l1`` is still the
+    absolute error, for comparison).
     """
     if pred.shape != target.shape or pred.shape[:2] != is_pad.shape:
         raise ValueError(f"act_loss: pred {tuple(pred.shape)}, target {tuple(target.shape)} "
@@ -192,7 +204,8 @@ def act_loss(pred: torch.Tensor, target: torch.Tensor, is_pad: torch.Tensor,
     err = torch.where(real, (pred - target).abs(), torch.zeros((), dtype=pred.dtype))
     l1 = err.sum() / real.sum().clamp_min(1)
     kl = kl_to_prior(mu, logvar)
-    return l1 + kl_weight * kl, l1, kl
+    rec = l1 if loss == "l1" else err.square().sum() / real.sum().clamp_min(1)
+    return rec + kl_weight * kl, l1, kl
 
 
 def temporal_ensemble(chunks, coeff: float = 0.01) -> np.ndarray:
@@ -500,6 +513,13 @@ class ACTAgent(Agent):
             "act_std": torch.tensor(np.maximum(act.std(0), floor), dtype=torch.float32),
         }
 
+    def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
+        """Z-scored observations, clipped to ``+-config.obs_clip`` when it is set."""
+        norm = self._need_norm()
+        obs_n = (obs - norm["obs_mean"]) / norm["obs_std"]
+        clip = self.config.obs_clip
+        return obs_n.clamp(-clip, clip) if clip else obs_n
+
     def _need_norm(self) -> dict:
         if self.norm is None:
             raise RuntimeError("ACTAgent: no normalizer yet; call fit_normalizer(episodes) "
@@ -532,7 +552,7 @@ class ACTAgent(Agent):
             raise ValueError(f"ACTAgent.update: expected obs (B, {self.obs_dim}), actions "
                              f"(B, {k}, {self.action_dim}), is_pad (B, {k}); got "
                              f"{tuple(obs.shape)}, {tuple(actions.shape)}, {tuple(is_pad.shape)}")
-        obs_n = (obs - norm["obs_mean"]) / norm["obs_std"]
+        obs_n = self.normalize_obs(obs)
         act_n = (actions - norm["act_mean"]) / norm["act_std"]
         # Padded targets are masked in the loss and in the CVAE encoder; zero them anyway so
         # no garbage value there can reach a float operation.
@@ -541,7 +561,8 @@ class ACTAgent(Agent):
         with torch.random.fork_rng(devices=[]):
             torch.set_rng_state(self._torch_rng)
             pred, mu, logvar = self.model(obs_n, act_n, is_pad)
-            loss, l1, kl = act_loss(pred, act_n, is_pad, mu, logvar, self.config.kl_weight)
+            loss, l1, kl = act_loss(pred, act_n, is_pad, mu, logvar, self.config.kl_weight,
+                                    self.config.loss)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()
@@ -584,7 +605,7 @@ class ACTAgent(Agent):
             obs = torch.from_numpy(stack["obs"][o_off:o_off + n])
             target = torch.from_numpy(stack["actions"][a_off + steps])
             is_pad = torch.from_numpy(steps >= n)
-            pred = self.model((obs - norm["obs_mean"]) / norm["obs_std"])[0]
+            pred = self.model(self.normalize_obs(obs))[0]
             err = ((pred - (target - norm["act_mean"]) / norm["act_std"]).abs()
                    * (~is_pad)[..., None])
             total += float(err.sum())
@@ -599,16 +620,21 @@ class ACTAgent(Agent):
     @torch.no_grad()
     def predict_chunk(self, obs: np.ndarray) -> np.ndarray:
         """The (k, A) chunk the policy predicts for ``obs`` with ``z = 0``, in [-1, 1]."""
-        norm = self._need_norm()
+        self._need_norm()
         obs = np.asarray(obs, dtype=np.float32)
         if obs.shape != (self.obs_dim,):
             raise ValueError(f"ACTAgent.act: expected an observation of shape "
                              f"({self.obs_dim},), got {obs.shape}")
         if not np.isfinite(obs).all():
             raise ValueError("ACTAgent.act: the observation has non-finite values")
+        return self.predict_chunks(obs[None])[0]
+
+    @torch.no_grad()
+    def predict_chunks(self, obs: np.ndarray) -> np.ndarray:
+        """(n, k, A) chunks for a batch of observations (n, obs_dim), ``z = 0``, in [-1, 1]."""
+        norm = self._need_norm()
         self.model.eval()
-        obs_n = (torch.from_numpy(obs)[None] - norm["obs_mean"]) / norm["obs_std"]
-        pred = self.model(obs_n)[0][0]
+        pred = self.model(self.normalize_obs(torch.as_tensor(np.asarray(obs, np.float32))))[0]
         actions = pred * norm["act_std"] + norm["act_mean"]
         return actions.clamp(-1.0, 1.0).numpy().astype(np.float32)
 
@@ -730,10 +756,23 @@ def _collect_demos(env_id: str, seeds) -> list[EpisodeLog]:
     return episodes
 
 
-def _rollout(agent: ACTAgent, env_id: str, seeds, max_steps: int | None = None) -> list[dict]:
-    """Seeded evaluation episodes, ``agent.h`` actions executed per query; each row says how
+def _lateral_mm(obs: np.ndarray) -> list[float]:
+    """|offset| of the panel centre from the seat axis (mm) along the two lateral world axes
+    (x, z; the insertion axis is -y), read from the ``flat`` observation's
+    ``window_pos_rel``."""
+    from window_bench.envs import scene as S
+
+    rel = np.asarray(obs[FLAT_ROBOT_DIM:FLAT_ROBOT_DIM + 3], dtype=np.float64)
+    lateral = rel - (rel @ S.INSERTION_AXIS) * S.INSERTION_AXIS
+    return [round(1000 * abs(float(lateral[0])), 2), round(1000 * abs(float(lateral[2])), 2)]
+
+
+def _rollout(agent, env_id: str, seeds, max_steps: int | None = None) -> list[dict]:
+    """Seeded evaluation episodes, ``agent.h`` actions executed per ``agent.act(obs)`` (any
+    agent with ``act``, ``reset`` and ``h``); each row says how
     the episode ended and where it stalled (the step its furthest stage was reached, the
-    closest the panel came to the seat and the last step that brought it 1 mm closer, the
+    closest the panel came to the seat, the lateral offset from the seat axis there and at
+    the end, the last step that brought it 1 mm closer, the
     cause of any suction loss) and what the policy commanded (mean |action| per dim, over
     the episode and over its last 50 steps; steps with the vacuum command at or below the
     environment's 0.5 threshold). ``max_steps`` shortens the episodes (tests)."""
@@ -751,6 +790,7 @@ def _rollout(agent: ACTAgent, env_id: str, seeds, max_steps: int | None = None) 
         queue: deque = deque()
         actions, stage, stage_step, term, trunc = [], int(info["stage"]), 0, False, False
         closest, progress_step = float(info["position_error"]), 0
+        nearest, lateral_closest = float(info["position_error"]), _lateral_mm(obs)
         while not (term or trunc):
             if not queue:
                 queue.extend(agent.act(obs)[: agent.h])
@@ -760,6 +800,8 @@ def _rollout(agent: ACTAgent, env_id: str, seeds, max_steps: int | None = None) 
                 stage, stage_step = int(info["stage"]), len(actions)
             if info["position_error"] < closest - 1e-3:
                 closest, progress_step = float(info["position_error"]), len(actions)
+            if info["position_error"] < nearest:
+                nearest, lateral_closest = float(info["position_error"]), _lateral_mm(obs)
         actions = np.asarray(actions, dtype=np.float64)
         rows.append({"seed": int(seed), "success": bool(term), "steps": len(actions),
                      "failure_mode": info["failure_mode"] or None,
@@ -769,6 +811,7 @@ def _rollout(agent: ACTAgent, env_id: str, seeds, max_steps: int | None = None) 
                      "stage": STAGES[stage], "stage_step": stage_step,
                      "closest_mm": round(1000 * min(closest, float(info["position_error"])), 2),
                      "progress_end_step": progress_step,
+                     "lateral_at_closest_mm": lateral_closest, "lateral_end_mm": _lateral_mm(obs),
                      "commanded_releases": int(info["suction_releases"]),
                      "grip_breaks": int(info["suction_failures"]),
                      "vacuum_off_steps": int((actions[:, -1] <= 0.5).sum()),

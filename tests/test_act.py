@@ -75,6 +75,38 @@ def test_loss_ignores_anything_at_padded_steps():
     assert torch.isclose(loss, l1 + 10.0 * kl)
 
 
+def test_l2_loss_is_the_masked_squared_error_and_still_reports_l1():
+    pred, target, is_pad, mu, logvar = random_loss_inputs()
+    loss, l1, kl = act_loss(pred, target, is_pad, mu, logvar, 10.0, loss="l2")
+    real = ~is_pad[..., None].expand_as(pred)
+    assert torch.isclose(loss, (pred - target).square()[real].mean() + 10.0 * kl, rtol=1e-6)
+    assert torch.equal(l1, act_loss(pred, target, is_pad, mu, logvar, 10.0)[1])
+    p2 = pred.masked_fill(is_pad[..., None], float("nan"))   # padding still has no effect
+    assert torch.equal(act_loss(p2, target, is_pad, mu, logvar, 10.0, loss="l2")[0], loss)
+    with pytest.raises(ValueError, match=r"ACTConfig.loss = 'huber'"):
+        ACTConfig(loss="huber")
+    with pytest.raises(ValueError, match=r"ACTConfig.obs_clip = -1"):
+        ACTConfig(obs_clip=-1)
+
+
+def test_obs_clip_bounds_the_policy_input_and_batches_match_single_chunks():
+    eps = [synthetic_episode(23, 0)]
+    agent = ACTAgent(OBS_DIM, config=replace(SMOKE, obs_clip=3.0), seed=0)
+    agent.fit_normalizer(eps)
+    far = eps[0].observations[0].astype(np.float32).copy()
+    far[0] = agent.norm["obs_mean"][0] + 1e4 * agent.norm["obs_std"][0]
+    at_clip = far.copy()
+    at_clip[0] = agent.norm["obs_mean"][0] + 3.0 * agent.norm["obs_std"][0]
+    assert np.allclose(agent.predict_chunk(far), agent.predict_chunk(at_clip), atol=1e-6)
+    unclipped = ACTAgent(OBS_DIM, config=SMOKE, seed=0)
+    unclipped.norm = agent.norm
+    assert not np.allclose(unclipped.predict_chunk(far), unclipped.predict_chunk(at_clip))
+    obs = eps[0].observations[:4].astype(np.float32)
+    batch = agent.predict_chunks(obs)
+    assert batch.shape == (4, SMOKE.chunk, 7)
+    assert np.allclose(batch, np.stack([agent.predict_chunk(o) for o in obs]), atol=1e-6)
+
+
 def test_all_pad_tail_equals_shorter_chunk():
     pred, target, _, mu, logvar = random_loss_inputs()
     is_pad = torch.zeros(4, 10, dtype=torch.bool)
@@ -399,7 +431,44 @@ def test_trainset_script_replays_a_policy_file_in_both_modes(tmp_path):
         assert s["episodes"] == 1 and s["rows"][0]["seed"] == 0 and len(s["wilson95"]) == 2
         row = s["rows"][0]
         assert 0 <= row["progress_end_step"] <= row["steps"] <= 40 and row["closest_mm"] >= 0
+        # lateral offsets from the seat axis (x, z), in mm, at the closest approach and the end
+        assert len(row["lateral_at_closest_mm"]) == 2 and min(row["lateral_end_mm"]) >= 0
+        assert s["pr_s"] in (0.0, 1.0)
     assert result["policy_bytes"] == f.stat().st_size and result["demo_seeds"] == [0]
     (stall,) = result["stall"]
     assert stall["seed"] == 0 and stall["stalled_steps"] >= 1
     assert stall["nearest_demo_distance_median"] >= 0 and stall["demo_abs_pose_action_all"] > 0
+
+
+def test_feedback_gain_of_a_policy_that_cancels_the_offset_is_minus_the_shift():
+    """The feedback-gain probe (experiments/sanity/act_feedback_gain.py) on hand-built
+    policies: one that commands, in the TCP frame, the world motion cancelling the observed
+    lateral offset within its chunk has gain -delta; one that ignores the offset has 0."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "act_feedback_gain", Path(__file__).parents[1] / "experiments/sanity/act_feedback_gain.py")
+    probe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(probe)
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(300, OBS_DIM)).astype(np.float32)
+    q = rng.normal(size=(300, 4))
+    obs[:, probe.EEF_QUAT] = q / np.linalg.norm(q, axis=1, keepdims=True)
+    rel = rng.uniform(-0.01, 0.01, (300, 3))
+    rel[:, 1] = np.repeat([0.11, 0.2, 0.5], 100)  # 100 states in each distance band
+    obs[:, FLAT_ROBOT_DIM:FLAT_ROBOT_DIM + 3] = rel
+    rot = probe.tcp_rotations(obs.astype(np.float64))
+    assert np.allclose(np.einsum("nij,nkj->nik", rot, rot), np.eye(3), atol=1e-6)
+
+    def cancelling(o):
+        world = -o[:, FLAT_ROBOT_DIM:FLAT_ROBOT_DIM + 3].astype(np.float64)
+        world[:, 1] = 0.0
+        tcp = np.einsum("nji,nj->ni", probe.tcp_rotations(o.astype(np.float64)), world)
+        chunk = np.zeros((len(o), 10, 7))
+        chunk[:, :, :3] = tcp[:, None] / (10 * probe.M_PER_UNIT)
+        return chunk
+
+    for name, g in probe.gains(cancelling, obs, 0.005).items():
+        assert g["states"] > 0 and abs(g["median_mm"] + 5.0) < 1e-3, (name, g)
+    for g in probe.gains(lambda o: np.zeros((len(o), 10, 7)), obs, 0.005).values():
+        assert g["median_mm"] == 0.0

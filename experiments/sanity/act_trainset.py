@@ -37,7 +37,15 @@ def summarize(rows: list[dict]) -> dict:
     """k/N with its Wilson interval, and how the failing episodes ended."""
     k, n = sum(r["success"] for r in rows), len(rows)
     fails = [r for r in rows if not r["success"]]
+    n_s = sum(r["suction_acquired"] for r in rows)
+    n_i = sum(r["insertion_entered"] for r in rows)
+    lateral = [max(r["lateral_at_closest_mm"]) for r in fails if "lateral_at_closest_mm" in r]
     return {"successes": k, "episodes": n, "wilson95": list(wilson_interval(k, n)),
+            # the paper's per-stage breakdown: suction, insertion entered given suction,
+            # seated (terminated) given insertion
+            "pr_s": n_s / n if n else None, "pr_i_given_s": n_i / n_s if n_s else None,
+            "pr_t_given_i": k / n_i if n_i else None,
+            "lateral_at_closest_mm_median": float(np.median(lateral)) if lateral else None,
             "failure_modes": dict(Counter(r["failure_mode"] or "timeout" for r in fails)),
             "furthest_stage": dict(Counter(r["stage"] for r in fails)),
             "furthest_stage_step_median": (float(np.median([r["stage_step"] for r in fails]))
