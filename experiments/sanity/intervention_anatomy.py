@@ -8,7 +8,8 @@ Stage III acts: the stochastic acting policy (``deterministic=False``), the trai
 its length, whether it ran into the operator's ``max_takeover_steps`` (the installer did not
 restore the recoverable envelope and handed back anyway), and each episode's outcome. With
 ``--deterministic`` the same episodes run on the policy's mean action, which separates what the
-acting noise costs.
+acting noise costs; with ``--no-supervisor`` they run with no takeovers at all (the policy
+alone on the same seeds), which separates what the takeovers themselves cost.
 
     python experiments/sanity/intervention_anatomy.py \\
         leaderboard/runs/WindowInstall-A-v0/qcfql-cpu-s0/policies/step_0024000.safetensors \\
@@ -98,6 +99,8 @@ def main(argv=None) -> int:
     ap.add_argument("--operator", default="average")
     ap.add_argument("--deterministic", action="store_true",
                     help="act on the mean action (evaluation's acting), not training's")
+    ap.add_argument("--no-supervisor", action="store_true",
+                    help="no takeovers: the policy alone on the same seeds")
     ap.add_argument("--out", default=None, help="JSON file for the per-episode rows and summary")
     args = ap.parse_args(argv)
     if not 1 <= args.episodes <= 1000:
@@ -106,7 +109,8 @@ def main(argv=None) -> int:
     agent_cls, state, meta = load_policy_file(args.policy)
     agent = agent_cls.from_policy_state_dict(state)
     env = make_training_env(meta["env_id"], None, obs_mode="flat", max_episode_steps=600)
-    sup = InstallerSupervisor(args.operator)
+    sup = InstallerSupervisor(args.operator, safety=not args.no_supervisor,
+                              coverage=not args.no_supervisor)
     rollout = Rollout(env, AgentPolicy(agent, deterministic=args.deterministic), supervisor=sup,
                       env_id=meta["env_id"], operator=args.operator)
     rows, t0 = [], time.perf_counter()
@@ -125,6 +129,7 @@ def main(argv=None) -> int:
         out = {"policy": args.policy, "policy_meta": {k: meta[k] for k in ("method", "env_id",
                                                                          "seed", "env_steps")},
                "operator": args.operator, "deterministic": args.deterministic,
+               "supervisor": not args.no_supervisor,
                "seeds": [SEED_BASE, SEED_BASE + args.episodes - 1], "summary": s, "rows": rows,
                "provenance": provenance()}
         atomic_write_text(args.out, json.dumps(out, indent=1))
