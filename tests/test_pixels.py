@@ -571,6 +571,21 @@ def test_the_supervisor_of_a_pixel_policy_reads_the_privileged_state(backbone):
     flat.close()
 
 
+def _observe_demos_once(monkeypatch) -> None:
+    """Runs of one test re-observe the same demonstrations (``pixel_demos`` is deterministic,
+    tested above): the first re-observation serves them all."""
+    from window_bench.pixels import track
+
+    real, cache = track.pixel_demos, {}
+
+    def once(eps, *args, **kwargs):
+        if "demos" not in cache:
+            cache["demos"] = real(eps, *args, **kwargs)
+        return cache["demos"]
+
+    monkeypatch.setattr(track, "pixel_demos", once)
+
+
 @pytest.mark.parametrize("method,kind", [("hil-serl", "hilserl-pixels"), ("sac", "sac-pixels")])
 def test_bench_run_hilserl_and_sac_on_the_pixel_track(tmp_path, monkeypatch, demos_root,
                                                       method, kind):
@@ -585,19 +600,11 @@ def test_bench_run_hilserl_and_sac_on_the_pixel_track(tmp_path, monkeypatch, dem
 
     from window_bench.harness import methods
     from window_bench.harness.run import Run
-    from window_bench.pixels import track
 
     monkeypatch.setitem(methods.PROFILES, "smoke", dataclasses.replace(
         methods.PROFILES["smoke"], budget_steps=120, warm_steps=20, checkpoint_every=120,
         eval_episodes=1, max_episode_steps=60, utd=0.1))
-    real, cache = track.pixel_demos, {}
-
-    def once(eps, *args, **kwargs):    # both runs re-observe the same demos: once is enough
-        if "demos" not in cache:
-            cache["demos"] = real(eps, *args, **kwargs)
-        return cache["demos"]
-
-    monkeypatch.setattr(track, "pixel_demos", once)
+    _observe_demos_once(monkeypatch)
 
     def run(name):
         r = Run(method, ENV, "smoke", 0, tmp_path / name, track="pixels", demos=demos_root,
@@ -674,6 +681,7 @@ def test_bench_run_act_on_the_pixel_track(tmp_path, monkeypatch, demos_root):
 
     monkeypatch.setitem(methods.PROFILES, "smoke", dataclasses.replace(
         methods.PROFILES["smoke"], eval_episodes=1, max_episode_steps=60))
+    _observe_demos_once(monkeypatch)
 
     def run(name):
         r = Run("act", ENV, "smoke", 0, tmp_path / name, track="pixels", demos=demos_root,
@@ -699,3 +707,46 @@ def test_bench_run_act_on_the_pixel_track(tmp_path, monkeypatch, demos_root):
     policy, _ = load_state(tmp_path / "a" / "policies" / "step_0000000.safetensors", "policy")
     assert "views.0.spatial.kernel" in policy["encoder"]          # the trained aggregation
     assert policy["agent"]["config"]["robot_dim"] == PROPRIO_DIM
+
+
+# ---------------------------------------------------------------- run-level resume on pixels
+def test_pixel_run_resumes_after_a_kill_as_if_never_killed(tmp_path, monkeypatch, demos_root):
+    """The complete pipeline (``qcfql``: Stage I, warm start, online updates, takeovers by the
+    installer watching the scene) on the pixel track, killed mid-episode in Stage III with no
+    state written after the last episode end (what SIGKILL leaves; the real SIGKILL at the
+    full smoke profile is benchmarks/pixel_kill_resume.sh) and resumed: the same checkpoints,
+    training episodes, final agent state and replays, bit for bit, as a run never killed.
+    Smoke profile cut to 120 env steps, checkpoints at 0, 60 and 120 (one episode each)."""
+    from test_harness import _assert_same   # tensors and arrays bit for bit
+
+    from window_bench.harness import methods
+    from window_bench.harness.files import load_state
+    from window_bench.harness.run import Run
+
+    monkeypatch.setitem(methods.PROFILES, "smoke", dataclasses.replace(
+        methods.PROFILES["smoke"], budget_steps=120, warm_steps=20, checkpoint_every=60,
+        eval_episodes=1, max_episode_steps=40, utd=0.1))
+    _observe_demos_once(monkeypatch)
+
+    def run(out, resume=False):
+        return Run("qcfql", ENV, "smoke", 0, out, resume=resume, track="pixels",
+                   demos=demos_root, progress=False, save_every_s=0.0, eval_workers=1)
+
+    whole = run(tmp_path / "whole").train()
+    killed = run(tmp_path / "killed")
+    killed._stop_after_env_steps = 75
+    with pytest.raises(KeyboardInterrupt):
+        killed.train()
+    saved, _ = load_state(tmp_path / "killed" / "state.safetensors", "state")
+    assert 75 - 40 <= saved["counters"]["env_steps"] < 75      # the last episode end
+    resumed = run(tmp_path / "killed", resume=True).train()
+    drop = lambda cps: [{k: v for k, v in c.items() if k != "wall_clock_s"} for c in cps]  # noqa: E731
+    assert [c["env_steps"] for c in whole["checkpoints"]] == [0, 60, 120]
+    assert drop(resumed["checkpoints"]) == drop(whole["checkpoints"])
+    assert resumed["train_episodes"] == whole["train_episodes"]
+    assert whole["final"]["grad_steps"] > 0
+    a, _ = load_state(tmp_path / "whole" / "state.safetensors", "state")
+    b, _ = load_state(tmp_path / "killed" / "state.safetensors", "state")
+    for key in ("agent", "demo_rb", "online_rb"):
+        _assert_same(a[key], b[key], key)
+

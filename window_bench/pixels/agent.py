@@ -237,13 +237,16 @@ class PixelHILSERL(PixelAgent):
 
     def _embedded(self, batch, grad: bool):
         """The learner's prepared batch on embeddings; with ``grad``, also the embedding
-        whose gradient trains the aggregation and the leaf the critic losses write it to."""
+        whose gradient trains the aggregation and the leaf the critic losses write it to.
+        Without, only ``s`` is embedded: the actor and temperature step reads no ``s'``."""
+        if not grad:
+            emb = self.encoder(torch.as_tensor(batch["obs"]))
+            return self.agent._prepare(batch.exclude("obs", "next_obs").set("obs", emb)
+                                       .set("next_obs", emb)), None, None
         emb, next_emb = self.encoder.encode_pair(torch.as_tensor(batch["obs"]),
                                                  torch.as_tensor(batch["next_obs"]))
         b = self.agent._prepare(batch.exclude("obs", "next_obs").set("obs", emb.detach())
                                 .set("next_obs", next_emb))
-        if not grad:
-            return b, None, None
         # The learner's critic and grasp-critic steps each run their own backward through
         # the observation: a leaf collects both gradients, which then flow into the
         # aggregation in one backward (its graph is used once).
