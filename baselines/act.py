@@ -112,6 +112,10 @@ class ACTConfig:
     setting A)."""
     obs_clip: float = 0.0
     """Bound on the z-scored observations (QC-FQL clips at 10); 0 = no clipping (ACT)."""
+    cvae: bool = True
+    """Train with the CVAE (ACT): the latent ``z`` from the encoder, which sees the target
+    actions. ``False`` trains the policy with ``z = 0``, as it acts (no encoder, no KL):
+    ACT's "w/o CVAE" ablation (Zhao et al. 2023, Sec. 5)."""
     loss: str = "l1"
     """Reconstruction term: ``"l1"`` (ACT) or ``"l2"`` (squared error, a departure measured in
     docs/act.md "Why ACT fails where flow BC succeeds")."""
@@ -124,6 +128,8 @@ class ACTConfig:
         if self.d_model % self.n_heads:
             raise ValueError(f"ACTConfig.n_heads = {self.n_heads} must divide "
                              f"d_model = {self.d_model}")
+        if not isinstance(self.cvae, bool):
+            raise ValueError(f"ACTConfig.cvae = {self.cvae!r} must be True or False")
         if not isinstance(self.temporal_ensembling, bool):
             raise ValueError(f"ACTConfig.temporal_ensembling = {self.temporal_ensembling!r} "
                              f"must be True or False")
@@ -560,7 +566,11 @@ class ACTAgent(Agent):
         self.model.train()
         with torch.random.fork_rng(devices=[]):
             torch.set_rng_state(self._torch_rng)
-            pred, mu, logvar = self.model(obs_n, act_n, is_pad)
+            if self.config.cvae:
+                pred, mu, logvar = self.model(obs_n, act_n, is_pad)
+            else:   # z = 0 in training as in acting: mu = logvar = 0 gives KL = 0 exactly
+                pred = self.model(obs_n)[0]
+                mu = logvar = pred.new_zeros(B, self.config.latent_dim)
             loss, l1, kl = act_loss(pred, act_n, is_pad, mu, logvar, self.config.kl_weight,
                                     self.config.loss)
             self.optimizer.zero_grad(set_to_none=True)
@@ -865,7 +875,10 @@ def main(argv=None) -> dict:
     p.add_argument("--steps", type=int, default=None, help="default: the profile's")
     p.add_argument("--eval-every", type=int, default=2000)
     p.add_argument("--episodes", type=int, default=20, help="evaluation seeds from --eval-seed")
-    p.add_argument("--eval-seed", type=int, default=1000)
+    p.add_argument("--eval-seed", type=int, default=1000,
+                   help="first evaluation seed (the harness's dev seeds start at 100000)")
+    p.add_argument("--modes", nargs="+", default=["chunked", "temporal_ensembling"],
+                   choices=["chunked", "temporal_ensembling"], help="evaluation modes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True)
     p.add_argument("--save", default=None, help="torch.save the agent here at checkpoints")
@@ -934,6 +947,8 @@ def main(argv=None) -> dict:
             atomic_write(os.path.join(args.policies, f"step_{agent.grad_steps:07d}.safetensors"),
                          lambda f: f.write(policy))
         for name, a in (("chunked", agent), ("temporal_ensembling", te_agent)):
+            if name not in args.modes:
+                continue
             rows = _rollout(a, args.env, eval_seeds) if args.episodes else []
             k = sum(r["success"] for r in rows)
             row[name] = {"successes": k, "episodes": len(rows),
@@ -941,7 +956,7 @@ def main(argv=None) -> dict:
                          "rows": rows}
         result["checkpoints"].append(row)
         print(json.dumps({k: row[k] for k in list(row)[:6]}),
-              {m: row[m]["successes"] for m in ("chunked", "temporal_ensembling")}, flush=True)
+              {m: row[m]["successes"] for m in args.modes}, flush=True)
         atomic_write_text(args.out, json.dumps(result, indent=1))
         if args.save:
             torch.save(agent.state_dict(), args.save + ".tmp")

@@ -107,6 +107,21 @@ def test_obs_clip_bounds_the_policy_input_and_batches_match_single_chunks():
     assert np.allclose(batch, np.stack([agent.predict_chunk(o) for o in obs]), atol=1e-6)
 
 
+def test_without_the_cvae_training_never_runs_the_encoder_and_has_no_kl():
+    eps = [synthetic_episode(23, 0), synthetic_episode(17, 1)]
+    agent = ACTAgent(OBS_DIM, config=replace(SMOKE, cvae=False), seed=0)
+    with torch.no_grad():
+        for name, p in agent.model.named_parameters():
+            if name.startswith(("cls_embed", "vae_", "latent_proj.")):
+                p.fill_(float("nan"))
+    logs = agent.train_offline(eps, 20)
+    assert all(g["kl"] == 0.0 and math.isfinite(g["loss"]) for g in logs)
+    assert logs[-1]["loss"] == logs[-1]["l1"]
+    assert np.isfinite(agent.predict_chunk(eps[0].observations[0])).all()
+    with pytest.raises(ValueError, match=r"ACTConfig.cvae = 1"):
+        ACTConfig(cvae=1)
+
+
 def test_all_pad_tail_equals_shorter_chunk():
     pred, target, _, mu, logvar = random_loss_inputs()
     is_pad = torch.zeros(4, 10, dtype=torch.bool)

@@ -14,9 +14,12 @@ the chunk's second).
         --demos-dir /tmp/act15/demos/heldout --out experiments/sanity/results/bc_feedback_gain.json
 
 A policy that imitates the transport but not the alignment has a gain near 0: it carries the
-panel to where the demonstrations went, whatever the panel's observed offset. Only the
-observed ``window_pos_rel`` is shifted (the robot's own state is not), so this measures the
-response to the one input that says where the panel is relative to the seat.
+panel to where the demonstrations went, whatever the panel's observed offset. ``--shift
+panel`` (default) shifts only the observed ``window_pos_rel``: the panel moved in the
+gripper, the robot where it was (the grasp offset varies from episode to episode; only this
+input says where the panel is); ``--shift tcp`` shifts only the observed TCP position
+(``robot0_eef_pos`` and its copy in ``robot0_proprio``): the robot moved, the panel's
+observed pose not; ``--shift both`` is the arm and the panel moved together.
 """
 
 from __future__ import annotations
@@ -37,8 +40,11 @@ from window_bench.harness.files import load_state, sha256_file
 M_PER_UNIT = 0.025
 #: Distance-to-seat bands (m): transport, approach, the alignment hover in front of the seat.
 BANDS = ((0.30, 2.0), (0.13, 0.30), (0.09, 0.13))
-#: Lateral world axes (x, z; the insertion axis is -y): the index of window_pos_rel's entry.
-AXES = {"x": (FLAT_ROBOT_DIM + 0, 0), "z": (FLAT_ROBOT_DIM + 2, 2)}
+#: Lateral world axes (x, z; the insertion axis is -y) and their index in a 3-vector.
+AXES = {"x": 0, "z": 2}
+#: First index of each shifted 3-vector in the flat observation: window_pos_rel; the TCP
+#: position (robot0_eef_pos) and its copy in robot0_proprio (q, qd, eef, vacuum).
+SHIFTS = {"panel": (FLAT_ROBOT_DIM,), "tcp": (14, 36), "both": (FLAT_ROBOT_DIM, 14, 36)}
 #: Where the TCP orientation (MuJoCo quaternion w, x, y, z) sits in the flat observation.
 EEF_QUAT = slice(17, 21)
 
@@ -61,16 +67,17 @@ def act_predictor(path: str):
     return ACTAgent.from_policy_state_dict(load_state(path, "policy")[0]).predict_chunks
 
 
-def gains(predict, obs: np.ndarray, delta_m: float) -> dict:
+def gains(predict, obs: np.ndarray, delta_m: float, shift: str = "panel") -> dict:
     dist = np.linalg.norm(obs[:, FLAT_ROBOT_DIM:FLAT_ROBOT_DIM + 3], axis=1)
     out = {}
     for lo, hi in BANDS:
         o = obs[(dist > lo) & (dist < hi)]
         rot = tcp_rotations(o)
         base = world_motion(predict(o), rot)
-        for name, (oi, wi) in AXES.items():
+        for name, wi in AXES.items():
             shifted = o.copy()
-            shifted[:, oi] += delta_m
+            for first in SHIFTS[shift]:
+                shifted[:, first + wi] += delta_m
             change = world_motion(predict(shifted), rot)[:, wi] - base[:, wi]
             out[f"{lo:.2f}-{hi:.2f} m/{name}"] = {
                 "states": int(len(o)), "median_mm": round(1000 * float(np.median(change)), 3),
@@ -88,6 +95,8 @@ def main(argv=None) -> dict:
     p.add_argument("--demos-dir", required=True, help="Minari root of the held-out demos")
     p.add_argument("--heldout", type=int, default=10)
     p.add_argument("--delta", type=float, default=5.0, help="lateral shift (mm)")
+    p.add_argument("--shift", nargs="+", default=["panel"], choices=sorted(SHIFTS),
+                   help="what the shift moves (see the module docstring)")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
     for f in [*a.act, *a.stage1]:
@@ -98,6 +107,7 @@ def main(argv=None) -> dict:
     eps = _harness_demos(a.env, a.operator, a.demos_dir, a.heldout, 2_000_000)
     obs = np.concatenate([ep.observations[:-1] for ep in eps]).astype(np.float32)
     result = {"heldout_seeds": [eps[0].seed, eps[-1].seed], "delta_mm": a.delta,
+              "shifts": a.shift,
               "m_per_action_unit": M_PER_UNIT, "policies": {}}
     preds = {f"act:{f}": act_predictor(f) for f in a.act}
     for f in a.stage1:
@@ -107,9 +117,11 @@ def main(argv=None) -> dict:
                 lambda o, agent=agent, policy=policy: agent.act(o, deterministic=True,
                                                                 policy=policy))
     for name, predict in preds.items():
-        g = gains(predict, obs, a.delta / 1000)
-        result["policies"][name] = {"sha256": sha256_file(name.split(":", 1)[1]), "gain": g}
-        print(name[-60:], {k: v["median_mm"] for k, v in g.items()}, flush=True)
+        result["policies"][name] = {"sha256": sha256_file(name.split(":", 1)[1])}
+        for shift in a.shift:
+            g = gains(predict, obs, a.delta / 1000, shift)
+            result["policies"][name][f"gain_{shift}"] = g
+            print(name[-50:], shift, {k: v["median_mm"] for k, v in g.items()}, flush=True)
     result["provenance"] = provenance()
     atomic_write_text(a.out, json.dumps(result, indent=1))
     return result

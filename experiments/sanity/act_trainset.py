@@ -127,7 +127,8 @@ def main(argv=None):
                    help="training demos of this operator model (bench's D_demo, seed "
                         "1,000,000 + --seed); default: the scripted installer on seeds 0..N-1")
     p.add_argument("--demos-dir", default="runs/act_demos", help="Minari root for --operator")
-    p.add_argument("--demos", type=int, default=3, help="training starts replayed (the first N)")
+    p.add_argument("--demos", type=int, default=3,
+                   help="training starts replayed (the first N; 0 with --policy: none)")
     p.add_argument("--train-demos", type=int, default=None,
                    help="demos trained on (default --demos); with --policy: those it was "
                         "trained on, of which the first --demos are replayed")
@@ -138,14 +139,17 @@ def main(argv=None):
     p.add_argument("--stall", type=int, default=0,
                    help="stall analysis (temporal ensembling) of this many training starts")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES,
+                   help="evaluation modes (default both)")
     p.add_argument("--max-steps", type=int, default=None,
                    help="episode step limit (default: the environment's, 600)")
     p.add_argument("--out", default="runs/sanity")
     a = p.parse_args(argv)
     n_train = a.demos if a.train_demos is None else a.train_demos
-    if (a.demos < 1 or a.steps < 1 or n_train < a.demos or a.dev < 0
+    if (a.demos < (0 if a.policy else 1) or a.steps < 1 or n_train < a.demos or a.dev < 0
             or not 0 <= a.stall <= a.demos or (a.max_steps is not None and a.max_steps < 1)):
-        p.error(f"--demos {a.demos}, --steps {a.steps} must be >= 1, --train-demos {n_train} "
+        p.error(f"--demos {a.demos} (>= 0 with --policy), --steps {a.steps} must be >= 1, "
+                f"--train-demos {n_train} "
                 f">= --demos, --dev {a.dev} >= 0, --stall {a.stall} in [0, --demos], "
                 f"--max-steps {a.max_steps} >= 1")
     if a.policy is not None and not Path(a.policy).is_file():
@@ -158,8 +162,8 @@ def main(argv=None):
               "demo_seeds": [ep.seed for ep in demos[: a.demos]],
               "demo_steps": [ep.T for ep in demos[: a.demos]],
               "demo_successes": sum(bool(ep.terminated[-1]) for ep in demos[: a.demos]),
-              "demo_abs_action_mean": np.abs(np.concatenate([ep.actions for ep in demos[: a.demos]])
-                                             ).mean(0).round(4).tolist()}
+              "demo_abs_action_mean": np.abs(np.concatenate(
+                  [ep.actions for ep in demos[: a.demos] or demos])).mean(0).round(4).tolist()}
     if a.policy is None:
         cfg = ACT_PROFILES[a.profile]
         agent = ACTAgent(demos[0].observations.shape[1], config=cfg, seed=a.seed)
@@ -179,11 +183,11 @@ def main(argv=None):
         for m in MODES}
     result["config"] = asdict(replace(agents["chunked"].config, temporal_ensembling=True))
     result["train_l1_z0"] = agents["chunked"].chunk_l1(demos)
-    sets = {"train_starts": result["demo_seeds"]}
+    sets = {"train_starts": result["demo_seeds"]} if a.demos else {}
     if a.dev:
         sets["dev"] = eval_seeds("dev", a.dev)
     for set_name, seeds in sets.items():
-        for mode in MODES:
+        for mode in a.modes:
             t0 = time.perf_counter()
             rows = _rollout(agents[mode], a.env, seeds, a.max_steps)
             result[f"{set_name}/{mode}"] = {**summarize(rows), "rows": rows,
