@@ -32,7 +32,7 @@ sleep "$KILL_AFTER"
 kill -KILL "$RUN"
 wait "$RUN" 2>/dev/null
 say "run $RUN killed with SIGKILL (exit $?) after $(( $(date +%s) - T0 )) s; files: $(ls "$OUT/killed" | tr '\n' ' ')"
-say "progress at the kill: $(tr '\r' '\n' < "$OUT/killed1.log" | grep -a 'Stage II/III env' | tail -1 | cut -c1-40)"
+say "progress at the kill: $(tr '\r' '\n' < "$OUT/killed1.log" | grep -a 'Stage II/III env' | grep -ao '[0-9]*/[0-9]* env steps\|[0-9]*/[0-9]* \[' | tail -1 | tr -d ' [') env steps"
 say "state on disk: $(python -c "
 from window_bench.harness.files import load_state
 c = load_state('$OUT/killed/state.safetensors', 'state')[0]['counters']
