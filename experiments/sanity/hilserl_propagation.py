@@ -15,9 +15,9 @@ against the true discounted returns, and their correlation with the return-to-go
     python experiments/sanity/hilserl_propagation.py --steps 10000 \\
         --out experiments/sanity/results/hilserl_propagation.json
 
-With ``--h 10`` the same critic is trained on 10-step chunk targets
-(``y = R_h + gamma^10 (1 - d) min_k Qbar_k(s_{t+10}, a'_demo)``, the pose action of the
-chunk's first step standing in for the chunk), to show what a chunked backup changes.
+With ``--h 10`` the same critic (still on the step's own action) is trained on 10-step
+returns (``y = R_10 + gamma^10 (1 - d) min_k Qbar_k(s_{t+10}, a_{t+10})``), the backup
+length of QC-FQL's chunks, to show what a longer backup changes at the same budget.
 """
 
 from __future__ import annotations
