@@ -627,3 +627,27 @@ def test_offline_steps_zero_skips_stage_i_in_the_harness(tmp_path, demos_root):
     assert r["checkpoints"][0]["grad_steps"] == 0 and r["checkpoints"][0]["episodes"] == 2
     # Smoke: UTD 0.05 over the 300 online steps = 15 credits, 2 critic steps per call.
     assert r["final"]["grad_steps"] == 2 * 8
+
+
+@pytest.mark.parametrize("h", [1, 10])
+def test_propagation_check_targets_are_the_true_returns(demo, h):
+    """experiments/sanity/hilserl_propagation.py: its h-step targets, bootstrapped from the
+    true return-to-go, give back the true return-to-go at every step of a real episode (the
+    check it makes on the critics would otherwise measure its own arithmetic)."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "hilserl_propagation",
+        Path(__file__).parents[1] / "experiments/sanity/hilserl_propagation.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    d = script.transitions([demo], GAMMA, h)
+    T = demo.T
+    assert len(d["obs"]) == T and d["start"].sum() == 1 and d["start"][0]
+    np.testing.assert_allclose(d["rtg"][0], GAMMA ** (T - 1), rtol=1e-5)
+    nxt = np.minimum(np.arange(T) + h, T - 1)
+    np.testing.assert_array_equal(d["done"], (np.arange(T) + h >= T).astype(np.float32))
+    rebuilt = d["ret"] + d["disc"] * (1 - d["done"]) * d["rtg"][nxt]
+    np.testing.assert_allclose(rebuilt, d["rtg"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(d["disc"][:T - h], GAMMA ** h, rtol=1e-6)
