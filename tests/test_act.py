@@ -487,3 +487,38 @@ def test_feedback_gain_of_a_policy_that_cancels_the_offset_is_minus_the_shift():
         assert g["states"] > 0 and abs(g["median_mm"] + 5.0) < 1e-3, (name, g)
     for g in probe.gains(lambda o: np.zeros((len(o), 10, 7)), obs, 0.005).values():
         assert g["median_mm"] == 0.0
+
+
+def test_bc_flow_eval_reads_a_stage1_entry_and_evaluates_teacher_and_student(tmp_path):
+    """experiments/sanity/bc_flow_eval.py: a Stage I entry (the harness's format, here a
+    tiny untrained QC-FQL) is only read; both policies act in open-loop chunks of h."""
+    import importlib.util
+    import sys
+
+    from baselines.qcfql import QCFQLAgent, QCFQLConfig
+    from window_bench.harness.files import dump_state
+
+    path = Path(__file__).parents[1] / "experiments/sanity/bc_flow_eval.py"
+    sys.path.insert(0, str(path.parent))
+    try:
+        spec = importlib.util.spec_from_file_location("bc_flow_eval", path)
+        script = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(script)
+    finally:
+        sys.path.remove(str(path.parent))
+    agent = QCFQLAgent(OBS_DIM, 7, QCFQLConfig(h=5, hidden=(16,)), seed=0)
+    entry = tmp_path / "cache" / "abcdef0123.safetensors"
+    entry.parent.mkdir()
+    entry.write_bytes(dump_state({"agent": agent.state_dict()}, "stage1"))
+    before = entry.read_bytes()
+    result = script.main([str(entry), "--dev", "1", "--train-starts", "0", "--max-steps", "12",
+                          "--out", str(tmp_path)])
+    assert entry.read_bytes() == before and (tmp_path / "bc_flow_abcdef01.json").is_file()
+    for policy in script.POLICIES:
+        s = result["sets"][f"dev/{policy}"]
+        assert s["episodes"] == 1 and s["rows"][0]["seed"] == 100000
+        assert s["rows"][0]["steps"] == 12 and s["pr_s"] in (0.0, 1.0)
+    with pytest.raises(SystemExit):
+        script.main([str(tmp_path / "missing.safetensors"), "--train-starts", "0"])
+    with pytest.raises(SystemExit):   # training starts need the demos' directory
+        script.main([str(entry), "--dev", "0"])
