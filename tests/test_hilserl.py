@@ -209,11 +209,15 @@ def test_temperature_moves_toward_target_entropy(demo_td, target, direction):
     assert np.all(steps == direction), alphas
 
 
-def _constant_target_critics(agent, values):
-    """Make every target member output a constant: zero last-layer weights, bias = value."""
+def _constant_target_critics(agent, values, grasp=None):
+    """Make every target member (and, with ``grasp``, the target grasp critic) output a
+    constant: zero last-layer weights, bias = value."""
+    nets = list(zip(agent.target_critic.members, values))
+    if grasp is not None:
+        nets.append((agent.target_grasp_critic, grasp))
     with torch.no_grad():
-        for member, v in zip(agent.target_critic.members, values):
-            last = [m for m in member.modules() if isinstance(m, torch.nn.Linear)][-1]
+        for net, v in nets:
+            last = [m for m in net.modules() if isinstance(m, torch.nn.Linear)][-1]
             last.weight.zero_()
             last.bias.fill_(v)
 
@@ -280,12 +284,7 @@ def test_suction_loss_terminal_ends_the_targets_where_the_panel_is_lost(env):
     for flag in (False, True):
         agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(8,), batch_size=2,
                                                            suction_loss_terminal=flag))
-        _constant_target_critics(agent, [2.0, 2.0])
-        with torch.no_grad():
-            last = [m for m in agent.target_grasp_critic.modules()
-                    if isinstance(m, torch.nn.Linear)][-1]
-            last.weight.zero_()
-            last.bias.fill_(3.0)
+        _constant_target_critics(agent, [2.0, 2.0], grasp=3.0)
         targets[flag] = (agent.td_target(batch), agent.grasp_td_target(batch))
     torch.testing.assert_close(targets[False][0], torch.full((2,), GAMMA * 2.0))
     torch.testing.assert_close(targets[True][0], torch.tensor([0.0, GAMMA * 2.0]))
@@ -305,12 +304,7 @@ def test_target_range_clips_both_targets_and_survives_a_resume():
         agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(8,), batch_size=2,
                                                            num_critics=2, num_min=1,
                                                            target_range=bounds))
-        _constant_target_critics(agent, [2.0, 2.0])
-        with torch.no_grad():
-            last = [m for m in agent.target_grasp_critic.modules()
-                    if isinstance(m, torch.nn.Linear)][-1]
-            last.weight.zero_()
-            last.bias.fill_(3.0)
+        _constant_target_critics(agent, [2.0, 2.0], grasp=3.0)
         targets[bounds is not None] = (agent.td_target(batch), agent.grasp_td_target(batch))
         _constant_target_critics(agent, [-1.0, -1.0])
         low = agent.td_target(_two_rows([0.0, 0.0], [False, False]))

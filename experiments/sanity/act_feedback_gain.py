@@ -24,8 +24,8 @@ observed pose not; ``--shift both`` is the arm and the panel moved together.
 
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,9 @@ from baselines.act import FLAT_ROBOT_DIM, ACTAgent, _harness_demos
 from baselines.qcfql import QCFQLAgent
 from window_bench.harness.evaluation import atomic_write_text, provenance
 from window_bench.harness.files import load_state, sha256_file
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bc_heldout_error import parse_policy_args, policy_parser  # noqa: E402  (the shared CLI core)
 
 #: Metres of TCP motion per action unit (the controller's translation scale).
 M_PER_UNIT = 0.025
@@ -87,21 +90,11 @@ def gains(predict, obs: np.ndarray, delta_m: float, shift: str = "panel") -> dic
 
 def main(argv=None) -> dict:
     torch.set_num_threads(1)
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--act", nargs="*", default=[], help="ACT policy files")
-    p.add_argument("--stage1", nargs="*", default=[], help="Stage I cache entries (read only)")
-    p.add_argument("--env", default="WindowInstall-A-v0")
-    p.add_argument("--operator", default="average")
-    p.add_argument("--demos-dir", required=True, help="Minari root of the held-out demos")
-    p.add_argument("--heldout", type=int, default=10)
+    p = policy_parser(__doc__)
     p.add_argument("--delta", type=float, default=5.0, help="lateral shift (mm)")
     p.add_argument("--shift", nargs="+", default=["panel"], choices=sorted(SHIFTS),
                    help="what the shift moves (see the module docstring)")
-    p.add_argument("--out", required=True)
-    a = p.parse_args(argv)
-    for f in [*a.act, *a.stage1]:
-        if not Path(f).is_file():
-            p.error(f"{f}: no such file")
+    a = parse_policy_args(p, argv)
     if not 0 < a.delta <= 50:
         p.error(f"--delta {a.delta} must lie in (0, 50] mm")
     eps = _harness_demos(a.env, a.operator, a.demos_dir, a.heldout, 2_000_000)

@@ -43,9 +43,9 @@ def chunk_errors(predict, episodes, k: int) -> dict:
             "chunk": (whole / n_real).round(5).tolist()}
 
 
-def main(argv=None) -> dict:
-    torch.set_num_threads(1)
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def policy_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments every held-out-demo probe of ACT and the flow policies takes."""
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
     p.add_argument("--act", nargs="*", default=[], help="ACT policy files")
     p.add_argument("--stage1", nargs="*", default=[], help="Stage I cache entries (read only)")
     p.add_argument("--env", default="WindowInstall-A-v0")
@@ -53,10 +53,20 @@ def main(argv=None) -> dict:
     p.add_argument("--demos-dir", required=True, help="Minari root of the held-out demos")
     p.add_argument("--heldout", type=int, default=10)
     p.add_argument("--out", required=True)
+    return p
+
+
+def parse_policy_args(p: argparse.ArgumentParser, argv=None) -> argparse.Namespace:
     a = p.parse_args(argv)
     for f in [*a.act, *a.stage1]:
         if not Path(f).is_file():
             p.error(f"{f}: no such file")
+    return a
+
+
+def main(argv=None) -> dict:
+    torch.set_num_threads(1)
+    a = parse_policy_args(policy_parser(__doc__), argv)
     eps = _harness_demos(a.env, a.operator, a.demos_dir, a.heldout, 2_000_000)
     acts = np.concatenate([ep.actions for ep in eps])
     result = {"heldout_seeds": [eps[0].seed, eps[-1].seed], "heldout_steps": int(len(acts)),
