@@ -9,7 +9,8 @@ committed: ``results.json``, ``checkpoints.csv``, ``learning_curve.png``, ``mani
 the final policy (acting weights only, with its sha256 in the manifest and in
 ``final_eval.policy_sha256``) and the sweep's ``sweep-logs/<cell>.json`` (exit code, wall
 clock). Never the training state, replay, TensorBoard events or intermediate policies
-(``.gitignore``). An evaluation cell (Table 7) is its ``<env>/<run>.json``.
+(``.gitignore``). An evaluation cell (Table 7) is its ``<env>/<run>.json`` and its sweep record; each sweep's summary
+``sweep-<grid>.json`` goes along.
 """
 
 import json
@@ -36,7 +37,9 @@ def finished_files(root: Path) -> list[Path]:
         log = root / "sweep-logs" / f"{run.parent.name}" / f"{run.name}.json"
         files += [log] if log.exists() else []
     for ev in sorted(root.glob("WindowInstall-*/*.json")):          # evaluation-only cells (Table 7)
-        files.append(ev)
+        log = root / "sweep-logs" / ev.parent.name / ev.name
+        files += [ev] + ([log] if log.exists() else [])
+    files += sorted(root.glob("sweep-*.json"))                       # each sweep's summary
     return files
 
 
