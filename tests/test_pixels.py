@@ -466,6 +466,42 @@ def _pixel_episode(T: int, seed: int, episode_id: int = 0):
                       seed=seed)
 
 
+def test_replay_draws_are_the_same_rows_as_torchrl_indexing():
+    """The pixel replay's fast reads change no batch: its row gather returns what TorchRL's
+    own storage read returns for the same seeded draws, and ``mixed_batch``, which joins the
+    two draws as stored and widens them once, returns the concatenation of the two samples."""
+    from torchrl.data import LazyTensorStorage, RandomSampler, ReplayBuffer, RoundRobinWriter
+
+    from window_bench.data.replay import ChunkReplay, mixed_batch
+    from window_bench.pixels.encoder import FEATURE_VALUES
+
+    def replay(seed, episodes, half=FEATURE_VALUES):
+        rb = ChunkReplay(40, 1, 0.99, seed=seed, half_obs=half)
+        for i in episodes:
+            rb.add_episode(_pixel_episode(7, i, i))
+        return rb
+
+    rb = replay(3, (1, 2, 3))
+    stored = rb._buffer.storage._storage[:len(rb)]
+    torchrl = ReplayBuffer(storage=LazyTensorStorage(40), sampler=RandomSampler(),
+                           writer=RoundRobinWriter(),
+                           generator=torch.Generator().manual_seed(3))
+    torchrl.extend(stored.clone())
+    for n in (1, 5, 64):
+        ours, theirs = rb._buffer.sample(n), torchrl.sample(n)
+        assert set(ours.keys()) == set(theirs.keys()) and "obs_half" in ours.keys()
+        assert all(torch.equal(ours[k], theirs[k]) for k in theirs.keys())
+    for half in (FEATURE_VALUES, 0):
+        demo, online = replay(0, (1, 2), half), replay(1, (3, 4, 5), half)
+        twins = replay(0, (1, 2), half), replay(1, (3, 4, 5), half)
+        for n in (2, 9):
+            joined = mixed_batch(demo, online, n)
+            k = round(n * 0.5)
+            parts = torch.cat([twins[0].sample(k), twins[1].sample(n - k)])
+            assert set(joined.keys()) == set(parts.keys()) and joined["obs"].dtype == torch.float32
+            assert all(torch.equal(joined[k], parts[k]) for k in parts.keys())
+
+
 def _pixel_spec(demos, seed: int = 0):
     from window_bench.harness.agent import AgentSpec
     from window_bench.harness.methods import PROFILES

@@ -82,6 +82,18 @@ def chunks_to_tensordict(chunks: dict[str, np.ndarray]) -> TensorDict:
     return TensorDict(data, batch_size=[K])
 
 
+class _RowGatherStorage(LazyTensorStorage):
+    """:class:`torchrl.data.LazyTensorStorage` whose batch reads gather rows with
+    ``index_select``: the same rows as its advanced indexing, 1.5-5x faster on the pixel
+    track's 32 KiB float16 feature-map rows, the bulk of a pixel update's sampling cost."""
+
+    def get(self, index):
+        if isinstance(index, torch.Tensor) and index.ndim == 1 and self.initialized:
+            return self._storage.apply(lambda x: x.index_select(0, index),
+                                       batch_size=[len(index)])
+        return super().get(index)
+
+
 class ChunkReplay:
     """FIFO replay of fixed-grid chunk transitions with seeded uniform sampling.
 
@@ -105,14 +117,16 @@ class ChunkReplay:
         self.seed = _check_count("seed", seed, 0)
         self.half_obs = _check_count("half_obs", half_obs, 0)
         self._generator = torch.Generator().manual_seed(self.seed)
-        self._buffer = ReplayBuffer(storage=LazyTensorStorage(self.capacity),
-                                    sampler=RandomSampler(), writer=RoundRobinWriter(),
-                                    generator=self._generator)
+        self._buffer = self._make_buffer()
         self.chunks_added = 0  # total ever added, overwritten ones included
         self.episodes_added = 0
 
     def __len__(self) -> int:
         return len(self._buffer)
+
+    def _make_buffer(self) -> ReplayBuffer:
+        return ReplayBuffer(storage=_RowGatherStorage(self.capacity), sampler=RandomSampler(),
+                            writer=RoundRobinWriter(), generator=self._generator)
 
     def _pack(self, td: TensorDict) -> TensorDict:
         """``obs``/``next_obs`` -> their float16 head (``*_half``) and float32 tail."""
@@ -128,14 +142,31 @@ class ChunkReplay:
             td[f"{key}_half"], td[key] = head, x[:, self.half_obs:].contiguous()
         return td
 
-    def _unpack(self, td: TensorDict) -> TensorDict:
-        for key in ("obs", "next_obs") if self.half_obs else ():
-            head, tail = td.pop(f"{key}_half"), td[key]
+    def _unpack(self, parts: list[TensorDict]) -> TensorDict:
+        """Stored rows (one or more draws) -> one batch with float32 ``obs``/``next_obs``.
+        Several draws are joined before the float16 maps are widened, each straight into
+        its rows of the batch: no float32 copy is concatenated (64 KiB per row and key)."""
+        heads = {key: [p.pop(f"{key}_half") for p in parts]
+                 for key in (("obs", "next_obs") if self.half_obs else ())}
+        td = parts[0] if len(parts) == 1 else torch.cat(parts, dim=0)
+        for key, halves in heads.items():
+            tail = td[key]
             out = torch.empty(len(tail), self.half_obs + tail.shape[1])
-            out[:, :self.half_obs].copy_(head)      # widened in the copy: one pass
+            row = 0
+            for head in halves:             # widened in the copy: one pass
+                out[row:row + len(head), :self.half_obs].copy_(head)
+                row += len(head)
             out[:, self.half_obs:].copy_(tail)
             td[key] = out
         return td
+
+    def _draw(self, n: int) -> TensorDict:
+        """``n`` stored rows drawn uniformly with replacement, as stored (see :meth:`sample`)."""
+        n = _check_count("n", n, 1)
+        if len(self) == 0:
+            raise ValueError(f"ChunkReplay.sample({n}): the buffer is empty; add episodes "
+                             f"with add_episode() before sampling")
+        return self._buffer.sample(n)
 
     def add_episode(self, episode: EpisodeLog) -> int:
         """Cut ``episode`` into chunk transitions on the fixed grid and append them.
@@ -162,11 +193,7 @@ class ChunkReplay:
 
         Raises ``ValueError`` if the buffer is empty or ``n`` is not an integer >= 1.
         """
-        n = _check_count("n", n, 1)
-        if len(self) == 0:
-            raise ValueError(f"ChunkReplay.sample({n}): the buffer is empty; add episodes "
-                             f"with add_episode() before sampling")
-        return self._unpack(self._buffer.sample(n))
+        return self._unpack([self._draw(n)])
 
     def state_dict(self) -> dict:
         """Everything for an exact resume: settings, the stored chunks in storage order, the
@@ -198,9 +225,7 @@ class ChunkReplay:
         self.seed = sd["seed"]
         self._generator = torch.Generator()
         self._generator.set_state(sd["rng_state"].clone())
-        self._buffer = ReplayBuffer(storage=LazyTensorStorage(self.capacity),
-                                    sampler=RandomSampler(), writer=RoundRobinWriter(),
-                                    generator=self._generator)
+        self._buffer = self._make_buffer()
         if sd["data"]:
             # rows were saved in storage order: writing them from slot 0 puts every chunk
             # back in its slot; the saved cursor then restores the FIFO overwrite order
@@ -235,9 +260,7 @@ def mixed_batch(demo: ChunkReplay, online: ChunkReplay, n: int,
         raise ValueError(f"mixed_batch: demo buffer has h = {demo.h}, online buffer has "
                          f"h = {online.h}; both must use the same chunk horizon")
     n_demo = n if len(online) == 0 else int(round(n * float(demo_fraction)))
-    parts = []
-    if n_demo > 0:
-        parts.append(demo.sample(n_demo))
-    if n - n_demo > 0:
-        parts.append(online.sample(n - n_demo))
-    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=0)
+    draws = [(rb, k) for rb, k in ((demo, n_demo), (online, n - n_demo)) if k > 0]
+    if demo.half_obs == online.half_obs:    # joined as stored, widened once (_unpack)
+        return demo._unpack([rb._draw(k) for rb, k in draws])
+    return torch.cat([rb.sample(k) for rb, k in draws], dim=0)
