@@ -98,7 +98,8 @@ def add_episodes(model: SAC, demos: list[EpisodeLog]) -> int:
 
 
 def make_sac(env, demos: list[EpisodeLog], seed: int, total_steps: int,
-             policy_kwargs: dict | None = None, **overrides) -> SAC:
+             policy_kwargs: dict | None = None, replay_buffer_class: type | None = None,
+             **overrides) -> SAC:
     """SB3 ``SAC("MlpPolicy", env)`` with SB3's defaults and the demos in its replay buffer.
 
     Parameters
@@ -119,6 +120,9 @@ def make_sac(env, demos: list[EpisodeLog], seed: int, total_steps: int,
     policy_kwargs : dict, optional
         SB3's ``policy_kwargs`` of the observation track (the pixel track's features
         extractor, :mod:`window_bench.pixels.sac`); not an override of SAC's settings.
+    replay_buffer_class : type, optional
+        SB3's replay buffer class of the observation track (the pixel track's stores the
+        feature maps as float16); ``None``: SB3's ``ReplayBuffer``.
     **overrides
         Any ``SAC`` keyword (disclose it). ``buffer_size`` below ``n_demo + total_steps``,
         ``optimize_memory_usage=True`` (it stores ``next_obs`` as the following row, which
@@ -133,7 +137,8 @@ def make_sac(env, demos: list[EpisodeLog], seed: int, total_steps: int,
     n_demo = demo_transitions(demos)
     needed = n_demo + total_steps
     kwargs = {"buffer_size": needed, "seed": seed, "device": "cpu", "verbose": 0,
-              **({"policy_kwargs": policy_kwargs} if policy_kwargs else {})}
+              **({"policy_kwargs": policy_kwargs} if policy_kwargs else {}),
+              **({"replay_buffer_class": replay_buffer_class} if replay_buffer_class else {})}
     kwargs.update(overrides)
     if kwargs["buffer_size"] < needed:
         raise ValueError(f"buffer_size = {kwargs['buffer_size']} is not allowed: it must be "
@@ -248,9 +253,11 @@ class SACAgent(Agent):
 
     h = 1
     own_replay = True   # SB3's buffer, with D_demo pre-filled
-    #: The acting adapter and SB3's ``policy_kwargs`` (the pixel track sets its own).
+    #: The acting adapter, SB3's ``policy_kwargs`` and replay buffer class (the pixel track
+    #: sets its own).
     policy_class = SACPolicy
     policy_kwargs: dict | None = None
+    replay_buffer_class: type | None = None
 
     def __init__(self, model: SAC):
         self.model = model
@@ -262,7 +269,8 @@ class SACAgent(Agent):
     def create(cls, spec: AgentSpec) -> "SACAgent":
         no_overrides("sac", spec.overrides)
         return cls(make_sac(spaces_env(spec.obs_dim, spec.action_dim), spec.demos, spec.seed,
-                            spec.profile.budget_steps, cls.policy_kwargs))
+                            spec.profile.budget_steps, cls.policy_kwargs,
+                            cls.replay_buffer_class))
 
     @property
     def gamma(self) -> float:
@@ -342,6 +350,8 @@ class SACAgent(Agent):
         model = SAC("MlpPolicy", spaces_env(state["obs_dim"], state["action_dim"]),
                     **{"buffer_size": state["buffer_size"], "seed": state["seed"],
                        "device": "cpu", "verbose": 0, "policy_kwargs": cls.policy_kwargs,
+                       **({"replay_buffer_class": cls.replay_buffer_class}
+                          if cls.replay_buffer_class else {}),
                        **state["overrides"]})
         model.overrides = dict(state["overrides"])
         agent = cls(model)

@@ -502,6 +502,54 @@ def test_replay_draws_are_the_same_rows_as_torchrl_indexing():
             assert all(torch.equal(joined[k], parts[k]) for k in parts.keys())
 
 
+def test_sac_pixel_replay_stores_float16_maps_and_samples_as_sb3():
+    """SB3 SAC's pixel buffer keeps the feature maps as float16 and returns, for the same
+    draws of SB3's global RNG, the batches of SB3's own float32 ``ReplayBuffer``; the agent's
+    state round trip restores it exactly, also from a state saved with float32 rows."""
+    from gymnasium import spaces
+    from stable_baselines3.common.buffers import ReplayBuffer
+
+    from window_bench.harness.methods import agent_class
+    from window_bench.pixels.sac import PixelReplayBuffer
+
+    obs_space = spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float32)
+    act_space = spaces.Box(-1.0, 1.0, (7,), np.float32)
+    ours, sb3 = (cls(30, obs_space, act_space, "cpu") for cls in (PixelReplayBuffer, ReplayBuffer))
+    assert ours.observation_maps.dtype == np.float16 and ours.observations.shape[-1] == PROPRIO_DIM
+    for ep in (_pixel_episode(9, 1), _pixel_episode(8, 2)):
+        for t in range(ep.T):
+            args = (ep.observations[t][None], ep.observations[t + 1][None], ep.actions[t][None],
+                    np.array([ep.rewards[t]], np.float32), np.array([ep.terminated[t]]),
+                    [{"TimeLimit.truncated": t == 3}])
+            for rb in (ours, sb3):
+                rb.add(*args)
+    for n in (1, 12):
+        np.random.seed(n)
+        a = [ours.sample(n) for _ in range(2)]         # the second draw: the same RNG stream
+        np.random.seed(n)
+        b = [sb3.sample(n) for _ in range(2)]
+        for field in ("observations", "actions", "next_observations", "dones", "rewards"):
+            for x, y in ((getattr(a[i], field), getattr(b[i], field)) for i in range(2)):
+                assert x.dtype == y.dtype and torch.equal(x, y), field
+    bad = _pixel_episode(2, 3).observations + np.float32(1e-4)
+    with pytest.raises(ValueError, match="not float16-exact"):
+        ours.add(bad[0][None], bad[1][None], np.zeros((1, 7)), np.zeros(1), np.zeros(1), [{}])
+
+    demos = [_pixel_episode(6, s, s) for s in (1, 2)]
+    agent = agent_class("sac-pixels").create(_pixel_spec(demos))
+    state = agent.state_dict()
+    again = agent_class("sac-pixels").from_state_dict(state)
+    old = {**state, "replay": {**state["replay"], **{     # SB3's float32 rows
+        k: np.concatenate([state["replay"][f].astype(np.float32), state["replay"][k]], axis=-1)
+        for k, f in (("observations", "observation_maps"),
+                     ("next_observations", "next_observation_maps"))}}}
+    for restored in (again, agent_class("sac-pixels").from_state_dict(old)):
+        rb, rb0 = restored.model.replay_buffer, agent.model.replay_buffer
+        for f in ("observations", "next_observations", *rb.map_fields, "actions", "rewards"):
+            np.testing.assert_array_equal(getattr(rb, f), getattr(rb0, f))
+        assert rb.pos == rb0.pos == 12
+
+
 def _pixel_spec(demos, seed: int = 0):
     from window_bench.harness.agent import AgentSpec
     from window_bench.harness.methods import PROFILES
