@@ -5,11 +5,14 @@ the same learner on the state track, at the same network sizes (the ``cpu`` prof
 Each learner is built by the harness's own ``create`` from an ``AgentSpec`` on random
 episodes (state: 52 values; pixels: 16,402 with float16-exact feature maps, as
 ``PixelFeatures`` makes them) and timed on ``learn``: QC-FQL (h = 10) and HIL-SERL (h = 1)
-draw from a ``ChunkReplay`` (the pixel one storing features as float16, as ``bench run
---track pixels``), HIL-SERL taking two critic steps and one actor step per call; SAC runs
-SB3's ``train(gradient_steps=1)`` on its own buffer; ACT draws its own batches from the demos
-(on pixels: their cached float16 feature maps). Rows run interleaved in every repeat (the
-machine is shared), MEDIANS over repeats are reported and each ratio is taken within a repeat.
+draw the harness's Stage III batch, ``mixed_batch`` of a demo and an online ``ChunkReplay``
+1:1 (the pixel ones storing features as float16, as ``bench run --track pixels``), HIL-SERL
+taking two critic steps and one actor step per call; SAC runs SB3's
+``train(gradient_steps=1)`` on its own buffer; ACT draws its own batches from the demos (on
+pixels: their cached float16 feature maps). Rows run interleaved in every repeat (the
+machine is shared), MEDIANS over repeats are reported and each ratio is taken within a repeat,
+both for wall-clock calls/s and for the process's CPU time per call (``time.process_time``:
+on a shared machine it leaves out the time the process waited for a core).
 
 ``--baseline REV`` measures the code of another commit beside this tree's (or beside commit
 ``--current REV``), in one run: every repeat runs this script once (``--repeats 1``) in a
@@ -40,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from window_bench.data.replay import ChunkReplay
+from window_bench.data.replay import ChunkReplay, mixed_batch
 from window_bench.data.steplog import EpisodeLog
 from window_bench.harness.agent import AgentSpec
 from window_bench.harness.evaluation import atomic_write_text, provenance
@@ -78,22 +81,27 @@ def learner(kind: str, obs_dim: int, h: int):
     agent = cls.create(AgentSpec(obs_dim=obs_dim, action_dim=7, h=h, seed=0, profile=profile,
                                  demos=demos, obs_mean=mean, obs_std=std))
     agent.attach_demos(demos)
-    rb = ChunkReplay(sum(-(-ep.T // h) for ep in demos), h, agent.gamma, seed=0,
-                     half_obs=FEATURE_VALUES if obs_dim == OBS_DIM else 0)
-    for ep in demos:
-        rb.add_episode(ep)
-    return agent, lambda: rb.sample(profile.batch_size)
+    replays = []
+    for seed, eps in enumerate((demos, episodes(obs_dim, seed=1))):     # demo, online
+        rb = ChunkReplay(sum(-(-ep.T // h) for ep in eps), h, agent.gamma, seed=seed,
+                         half_obs=FEATURE_VALUES if obs_dim == OBS_DIM else 0)
+        for ep in eps:
+            rb.add_episode(ep)
+        replays.append(rb)
+    return agent, lambda: mixed_batch(*replays, profile.batch_size, 0.5)
 
 
-def rate(agent, sample, calls: int) -> float:
-    t0 = time.perf_counter()
+def rate(agent, sample, calls: int) -> tuple[float, float]:
+    """(calls/s wall clock, CPU ms per call) of ``calls`` learner calls."""
+    t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(calls):
         agent.learn(sample)
-    return calls / (time.perf_counter() - t0)
+    return calls / (time.perf_counter() - t0), (time.process_time() - c0) * 1e3 / calls
 
 
 def measure(methods: list[str], repeats: int, calls: int) -> list[dict]:
-    """Calls/s of every buildable row, ``repeats`` times, rows interleaved."""
+    """Calls/s and CPU ms per call of every buildable row, ``repeats`` times, rows
+    interleaved: one ``{row: (calls/s, CPU ms)}`` per repeat."""
     rows = {}
     for m in methods:
         state, pixels, h = KINDS[m]
@@ -108,16 +116,24 @@ def measure(methods: list[str], repeats: int, calls: int) -> list[dict]:
     for r in range(repeats):
         raw.append({k: rate(a, s, calls) for k, (a, s) in rows.items()})
         print(f"repeat {r + 1}/{repeats}: "
-              + ", ".join(f"{k} {v:.2f}/s" for k, v in raw[-1].items()), flush=True)
+              + ", ".join(f"{k} {v:.2f}/s {c:.1f} CPU ms" for k, (v, c) in raw[-1].items()),
+              flush=True)
     return raw
 
 
 def summary(raw: list[dict], methods: list[str]) -> dict:
     keys = raw[0].keys()
-    med = {k: float(np.median([x[k] for x in raw])) for k in keys}
-    cost = {m: float(np.median([x[f"{m} state"] / x[f"{m} pixels"] for x in raw]))
-            for m in methods if f"{m} state" in keys and f"{m} pixels" in keys}
-    return {"learner_calls_per_s": med, "pixel_call_cost_vs_state": cost}
+    both = [m for m in methods if f"{m} state" in keys and f"{m} pixels" in keys]
+
+    def med(f) -> float:
+        return float(np.median([f(x) for x in raw]))
+
+    return {"learner_calls_per_s": {k: med(lambda x: x[k][0]) for k in keys},
+            "learner_cpu_ms_per_call": {k: med(lambda x: x[k][1]) for k in keys},
+            "pixel_call_cost_vs_state": {
+                m: med(lambda x: x[f"{m} state"][0] / x[f"{m} pixels"][0]) for m in both},
+            "pixel_call_cpu_cost_vs_state": {
+                m: med(lambda x: x[f"{m} pixels"][1] / x[f"{m} state"][1]) for m in both}}
 
 
 def child(tree: Path, methods: list[str], calls: int) -> list[dict]:
@@ -159,10 +175,13 @@ def compare(rev: str, current: str | None, methods: list[str], repeats: int,
                 print(f"repeat {r + 1}/{repeats}: {name}", flush=True)
                 raw[name] += child(trees[name], methods, calls)
     out = {name: summary(rows, methods) for name, rows in raw.items()}
-    speedup = {k: float(np.median([c[k] / b[k] for b, c in zip(raw["baseline"], raw["current"])]))
-               for k in raw["current"][0] if k in raw["baseline"][0]}
+    pairs = list(zip(raw["baseline"], raw["current"]))
+    rows = [k for k in raw["current"][0] if k in raw["baseline"][0]]
+    speedup = {k: float(np.median([c[k][0] / b[k][0] for b, c in pairs])) for k in rows}
+    cpu = {k: float(np.median([c[k][1] / b[k][1] for b, c in pairs])) for k in rows}
     return {"baseline_commit": sha, "current_commit": current_sha, **out,
-            "current_vs_baseline_calls_per_s": speedup, "raw": raw}
+            "current_vs_baseline_calls_per_s": speedup,
+            "current_vs_baseline_cpu_ms_per_call": cpu, "raw": raw}
 
 
 def main(argv=None) -> int:
@@ -185,12 +204,13 @@ def main(argv=None) -> int:
     if args.baseline is None:
         raw = measure(args.methods, args.repeats, args.calls)
         result = {**summary(raw, args.methods), **common, "raw": raw}
-        shown = ("learner_calls_per_s", "pixel_call_cost_vs_state")
+        shown = ("learner_calls_per_s", "learner_cpu_ms_per_call", "pixel_call_cost_vs_state",
+                 "pixel_call_cpu_cost_vs_state")
     else:
         result = {**compare(args.baseline, args.current, args.methods, args.repeats,
                             args.calls), **common}
         shown = ("baseline_commit", "current_commit", "baseline", "current",
-                 "current_vs_baseline_calls_per_s")
+                 "current_vs_baseline_calls_per_s", "current_vs_baseline_cpu_ms_per_call")
     result["provenance"] = provenance()
     atomic_write_text(args.out, json.dumps(result, indent=1))
     print(json.dumps({k: result[k] for k in shown}, indent=1))
