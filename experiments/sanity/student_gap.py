@@ -8,7 +8,9 @@ cause? Reads a Stage I cache entry (never writes it) and its demonstrations, and
    ``cache`` (the averaged student the entry deploys), ``raw`` (the raw student: the
    averaging's share), ``distill`` (raw, then ``--steps`` updates of the distillation term
    alone) and ``full`` (raw, then ``--steps`` updates of the whole Eq. 9 loss: the matched
-   control). ``distill`` against ``full`` isolates the Q-term.
+   control). ``distill`` against ``full`` isolates the Q-term. ``scratch``: a new student of
+   ``--scratch-hidden`` sizes (e.g. the paper's 4 x 512) distilled alone from the same
+   teacher for ``--scratch-steps`` updates: does capacity close the gap?
 
     python experiments/sanity/student_gap.py \
         leaderboard/runs/stage1_cache/421c1bfa....safetensors --env WindowInstall-B-v0 \
@@ -35,14 +37,14 @@ from act_trainset import summarize  # noqa: E402
 from bc_flow_eval import ChunkPolicy  # noqa: E402
 
 from baselines.act import _harness_demos, _rollout  # noqa: E402
-from baselines.qcfql import QCFQLAgent  # noqa: E402
+from baselines.qcfql import OneStepPolicy, QCFQLAgent  # noqa: E402
 from window_bench.data.replay import ChunkReplay  # noqa: E402
 from window_bench.harness.evaluation import atomic_write_text, provenance  # noqa: E402
 from window_bench.harness.files import load_state, sha256_file  # noqa: E402
 from window_bench.harness.seeds import eval_seeds  # noqa: E402
 
 VACUUM_INDEX = 21   # robot0_vacuum in the flat state (7 q + 7 qd + 3 eef pos + 4 eef quat)
-ARMS = ("cache", "raw", "distill", "full")
+ARMS = ("cache", "raw", "distill", "full", "scratch")
 
 
 def chunk_states(demos, h: int) -> np.ndarray:
@@ -91,6 +93,15 @@ def fine_tune(agent: QCFQLAgent, rb: ChunkReplay, steps: int, with_q: bool, batc
     return a
 
 
+def fresh_student(agent: QCFQLAgent, hidden: tuple[int, ...], seed: int) -> QCFQLAgent:
+    """A copy of ``agent`` with a newly initialised student (and acting copy) of ``hidden``."""
+    a = copy.deepcopy(agent)
+    gen = torch.Generator().manual_seed(seed)
+    a.student = OneStepPolicy(a.obs_dim, a.chunk_dim, hidden, gen, a.config.gelu_approximate)
+    a.ema_student = copy.deepcopy(a.student).requires_grad_(False)
+    return a
+
+
 def main(argv=None) -> dict:
     torch.set_num_threads(1)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -101,14 +112,17 @@ def main(argv=None) -> dict:
     p.add_argument("--demos", type=int, default=50)
     p.add_argument("--dev", type=int, default=20, help="dev seeds 100000..")
     p.add_argument("--steps", type=int, default=2000, help="fine-tuning updates per arm")
-    p.add_argument("--arms", nargs="+", default=list(ARMS), choices=ARMS)
+    p.add_argument("--arms", nargs="+", default=list(ARMS[:4]), choices=ARMS)
+    p.add_argument("--scratch-hidden", type=int, nargs="+", default=[512, 512, 512, 512])
+    p.add_argument("--scratch-steps", type=int, default=10000)
     p.add_argument("--out", default="experiments/sanity/results")
     a = p.parse_args(argv)
     entry = Path(a.entry)
     if not entry.is_file():
         p.error(f"{entry}: no such Stage I cache entry")
-    if a.dev < 1 or a.steps < 0 or a.demos < 1:
-        p.error(f"--dev {a.dev} and --demos {a.demos} must be >= 1, --steps {a.steps} >= 0")
+    if a.dev < 1 or a.steps < 0 or a.demos < 1 or a.scratch_steps < 0 or min(a.scratch_hidden) < 1:
+        p.error(f"--dev {a.dev}, --demos {a.demos} and --scratch-hidden {a.scratch_hidden} must "
+                f"be >= 1, --steps {a.steps} and --scratch-steps {a.scratch_steps} >= 0")
     material_path = entry.with_suffix(".json")
     material = json.loads(material_path.read_text()) if material_path.is_file() else {}
     tree, _ = load_state(entry, "stage1")
@@ -121,13 +135,17 @@ def main(argv=None) -> dict:
     obs = chunk_states(demos, agent.h)
     result = {"entry": str(entry), "entry_sha256": sha256_file(entry), "env": a.env,
               "num_updates": agent.num_updates, "alpha": agent.config.alpha,
-              "fine_tune_steps": a.steps, "acting": f"z = 0, open-loop chunks of h = {agent.h}",
+              "fine_tune_steps": a.steps, "scratch_hidden": a.scratch_hidden,
+              "scratch_steps": a.scratch_steps, "acting": f"z = 0, open-loop chunks of h = {agent.h}",
               "gap": {}, "arms": {}}
     seeds = list(eval_seeds("dev", a.dev))
     for arm in a.arms:
         t0 = time.perf_counter()
         if arm == "cache":
             arm_agent = agent
+        elif arm == "scratch":
+            arm_agent = fine_tune(fresh_student(agent, tuple(a.scratch_hidden), seed), rb,
+                                  a.scratch_steps, False, agent.config.batch_size, seed)
         else:
             raw = copy.deepcopy(agent)
             raw.ema_student.load_state_dict(raw.student.state_dict())
@@ -147,7 +165,8 @@ def main(argv=None) -> dict:
               f"{g['latched']['q_grad_norm_median']:.4f} | {s['wall_s']} s", flush=True)
     result["provenance"] = provenance()
     Path(a.out).mkdir(parents=True, exist_ok=True)
-    out = Path(a.out) / f"student_gap_{entry.stem[:8]}.json"
+    tag = "" if a.arms != ["scratch"] else "_scratch" + "x".join(map(str, a.scratch_hidden))
+    out = Path(a.out) / f"student_gap_{entry.stem[:8]}{tag}.json"
     atomic_write_text(out, json.dumps(result, indent=1))
     print(out)
     return result
