@@ -73,6 +73,11 @@ class QCFQLConfig:
     """Chunk horizon in 10 Hz steps; ``h = 1`` gives the step-wise variants."""
     hidden: tuple[int, ...] = (512, 512, 512, 512)
     """Hidden widths of every MLP (critic, teacher, student)."""
+    student_hidden: tuple[int, ...] | None = None
+    """Hidden widths of the one-step student alone (``None``: ``hidden``). The student must
+    reproduce the teacher's chunk in one pass; on WindowInstall-B the ``cpu`` size (2 x 256)
+    stops short of the grasp where a 4 x 512 student distilled from the same teacher does not
+    (``docs/results/discussion.md#setting-b-the-grasp``)."""
     num_critics: int = 2
     """Critic ensemble size."""
     alpha: float = 300.0
@@ -164,6 +169,8 @@ class QCFQLConfig:
 
     def __post_init__(self):
         self.hidden = tuple(self.hidden)
+        if self.student_hidden is not None:
+            self.student_hidden = tuple(self.student_hidden)
         for name in ("h", "num_critics", "flow_steps", "batch_size"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
@@ -173,6 +180,11 @@ class QCFQLConfig:
                                   or w < 1 for w in self.hidden):
             raise ValueError(f"QCFQLConfig.hidden = {self.hidden!r} is not allowed: it must be "
                              f"a non-empty tuple of integers >= 1")
+        if self.student_hidden is not None and (not self.student_hidden or any(
+                isinstance(w, bool) or not isinstance(w, numbers.Integral) or w < 1
+                for w in self.student_hidden)):
+            raise ValueError(f"QCFQLConfig.student_hidden = {self.student_hidden!r} is not "
+                             f"allowed: it must be null or a non-empty tuple of integers >= 1")
         # Finite bounds only: Infinity or 1e30 would pass an open range and crash later.
         checks = (("alpha", 0.0, 1e6, True), ("lr", 0.0, 1.0, False),
                   ("tau", 0.0, 1.0, False), ("gamma", 0.0, 1.0, True),
@@ -395,7 +407,8 @@ class QCFQLAgent(Agent):
         self.critic = EnsembleCritic(obs_dim + self.chunk_dim, cfg.hidden, cfg.num_critics,
                                      cfg.critic_layer_norm, init_gen, act)
         self.teacher = VectorField(obs_dim, self.chunk_dim, cfg.hidden, init_gen, act)
-        self.student = OneStepPolicy(obs_dim, self.chunk_dim, cfg.hidden, init_gen, act)
+        self.student = OneStepPolicy(obs_dim, self.chunk_dim, cfg.student_hidden or cfg.hidden,
+                                     init_gen, act)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self._params = [*self.critic.parameters(), *self.teacher.parameters(),
                         *self.student.parameters()]
@@ -677,7 +690,8 @@ class QCFQLAgent(Agent):
         saved = _config_from(sd["config"])
         structural = {"obs_dim": (sd["obs_dim"], self.obs_dim),
                       "action_dim": (sd["action_dim"], self.action_dim)}
-        for name in ("h", "hidden", "num_critics", "critic_layer_norm", "gelu_approximate"):
+        for name in ("h", "hidden", "student_hidden", "num_critics", "critic_layer_norm",
+                     "gelu_approximate"):
             structural[name] = (getattr(saved, name), getattr(self.config, name))
         for name, (theirs, ours) in structural.items():
             if theirs != ours:

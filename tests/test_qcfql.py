@@ -505,6 +505,29 @@ def test_state_dict_round_trip_is_bit_identical():
         QCFQLAgent(OBS, A, tiny(h=2, hidden=(8,)), seed=0).load_state_dict(sd)
 
 
+def test_student_hidden_sizes_the_student_alone_and_defaults_to_hidden():
+    default = QCFQLAgent(OBS, A, tiny(h=2, hidden=(16, 16)), seed=3)
+    wide = QCFQLAgent(OBS, A, tiny(h=2, hidden=(16, 16), student_hidden=[32, 32, 32]), seed=3)
+    widths = [m.out_features for m in wide.student.modules() if isinstance(m, torch.nn.Linear)]
+    assert widths == [32, 32, 32, 2 * A] and wide.config.student_hidden == (32, 32, 32)
+    # critic and teacher are drawn before the student: unchanged by the student's size
+    for net in ("critic", "teacher"):
+        for p, q in zip(getattr(wide, net).parameters(), getattr(default, net).parameters()):
+            assert torch.equal(p, q)
+    same = QCFQLAgent(OBS, A, tiny(h=2, hidden=(16, 16), student_hidden=None), seed=3)
+    for p, q in zip(same.student.parameters(), default.student.parameters()):
+        assert torch.equal(p, q)
+    wide.update(make_batch(8, 2))   # trains and acts at its own size
+    assert wide.act(np.zeros(OBS)).shape == (2, A)
+    restored = QCFQLAgent.from_state_dict(wide.state_dict())
+    assert restored.config.student_hidden == (32, 32, 32)
+    with pytest.raises(ValueError, match="student_hidden"):
+        default.load_state_dict(wide.state_dict())
+    for bad in ((), (0,), (8, True)):
+        with pytest.raises(ValueError, match=r"student_hidden = .* integers >= 1"):
+            QCFQLConfig(student_hidden=bad)
+
+
 def test_same_seed_same_training():
     cfg = tiny(hidden=(16,))
     runs = []
