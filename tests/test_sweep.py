@@ -76,6 +76,24 @@ def test_cell_names_h_and_overrides(tmp_path):
     assert argv[argv.index("--final-seed-set") + 1] == "test"
 
 
+def test_list_overrides_name_cells_as_the_leaderboard_names_runs(tmp_path):
+    from window_bench.harness.leaderboard import run_dest
+
+    g = _grid(tmp_path, GRID + 'agent_config = { student_hidden = [64, 32] }\n')
+    c = next(c for c in g.cells if c.method == "qcfql" and c.seed == 0)
+    assert c.name.endswith("/qcfql-student_hidden64x32-smoke-s0")
+    argv = cell_command(c, g, tmp_path, resume=False)
+    assert argv[argv.index("--agent-config") + 1] == "student_hidden=[64, 32]"
+    results = {"env_id": c.env_id, "method": {"name": c.method}, "profile": {"name": c.profile},
+               "seed": c.seed, "track": "state",
+               "agent_config_overrides": {"student_hidden": [64, 32]}}
+    assert run_dest(results, tmp_path) == c.path(tmp_path)
+    grid = load_grid(REPO / "experiments" / "student_size.toml")
+    assert {c.name for c in grid.cells} >= {
+        "WindowInstall-B-v0/qcfql-offline-student_hidden512x512x512x512-cpu-s0",
+        "WindowInstall-B-v0/qcfql-student_hidden512x512x512x512-cpu-s2"}
+
+
 def test_eval_workers_reach_every_cell_command(tmp_path):
     g = _grid(tmp_path, "eval_workers = 1\n" + GRID)
     assert g.eval_workers == 1

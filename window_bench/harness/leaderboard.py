@@ -124,10 +124,18 @@ def check_results(path: str | os.PathLike) -> dict:
     return results
 
 
+def override_tag(items) -> str:
+    """``-<key><value>`` for each agent-config override ``(key, value)``, in order; a list value
+    joins its items with ``x`` (``-student_hidden512x512``), so that a run's name stays one
+    safe directory name. ``bench sweep`` names its cells with the same tags."""
+    return "".join(f"-{k}{'x'.join(map(str, v)) if isinstance(v, (list, tuple)) else v}"
+                   for k, v in items)
+
+
 def run_dest(results: dict, root: str | os.PathLike) -> Path:
     """``root/<env>/<method><overrides>[-pixels]-<profile>-s<seed>``, checked to stay inside
     ``root``: a pixel-track run never lands on the state-track run of the same method and seed."""
-    tag = "".join(f"-{k}{v}" for k, v in (results.get("agent_config_overrides") or {}).items())
+    tag = override_tag((results.get("agent_config_overrides") or {}).items())
     if _track(results) != "state":
         tag += f"-{_track(results)}"
     name = f"{results['method']['name']}{tag}-{results['profile']['name']}-s{results['seed']}"

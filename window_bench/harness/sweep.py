@@ -56,6 +56,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from window_bench.harness.evaluation import atomic_write_text
+from window_bench.harness.leaderboard import override_tag
 from window_bench.harness.methods import get_method, get_profile
 from window_bench.harness.seeds import SEED_SETS
 
@@ -93,7 +94,7 @@ class Cell:
     def name(self) -> str:
         """``<env>/<run>`` for a training cell, ``<evaluated env>/<run>`` for an evaluation."""
         tag = f"-h{self.h}" if self.h is not None else ""
-        tag += "".join(f"-{k}{v}" for k, v in self.agent_config)
+        tag += override_tag(self.agent_config)
         tag += "" if self.track == "state" else f"-{self.track}"   # as bench leaderboard names it
         return f"{self.on or self.env_id}/{self.method}{tag}-{self.profile}-s{self.seed}"
 
