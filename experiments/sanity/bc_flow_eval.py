@@ -103,9 +103,14 @@ def main(argv=None) -> dict:
                   f"Wilson [{s['wilson95'][0]:.3f}, {s['wilson95'][1]:.3f}] "
                   f"S {s['pr_s']} I|S {s['pr_i_given_s']} T|I {s['pr_t_given_i']} "
                   f"{s['failure_modes']} {s['wall_s']} s", flush=True)
+    return save_result(result, Path(a.out) / f"bc_flow_{entry.stem[:8]}.json")
+
+
+def save_result(result: dict, out: Path) -> dict:
+    """``result`` with its provenance, written atomically to ``out`` (the sanity scripts'
+    one way of leaving a result)."""
     result["provenance"] = provenance()
-    Path(a.out).mkdir(parents=True, exist_ok=True)
-    out = Path(a.out) / f"bc_flow_{entry.stem[:8]}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, json.dumps(result, indent=1))
     print(out)
     return result

@@ -15,7 +15,6 @@ Writes ``<out>/grasp_timing_<key[:8]>.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -25,12 +24,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bc_flow_eval import POLICIES, ChunkPolicy  # noqa: E402
+from bc_flow_eval import POLICIES, ChunkPolicy, save_result  # noqa: E402
 
 import window_bench  # noqa: E402,F401  (registers the env ids)
 from baselines.qcfql import QCFQLAgent  # noqa: E402
 from window_bench.envs.env import SNAP_DISTANCE, VACUUM_THRESHOLD  # noqa: E402
-from window_bench.harness.evaluation import atomic_write_text, provenance, wilson_interval  # noqa: E402
+from window_bench.harness.evaluation import wilson_interval  # noqa: E402
 from window_bench.harness.files import load_state, sha256_file  # noqa: E402
 from window_bench.harness.seeds import eval_seeds  # noqa: E402
 
@@ -112,12 +111,7 @@ def main(argv=None) -> dict:
               f"{s['missed_min_gap_mm_median']} mm, never commanded vacuum "
               f"{s['missed_never_commanded_vacuum']}/{s['missed']}, reversals above reach "
               f"median {s['missed_reversals_median']}", flush=True)
-    result["provenance"] = provenance()
-    Path(a.out).mkdir(parents=True, exist_ok=True)
-    out = Path(a.out) / f"grasp_timing_{entry.stem[:8]}.json"
-    atomic_write_text(out, json.dumps(result, indent=1))
-    print(out)
-    return result
+    return save_result(result, Path(a.out) / f"grasp_timing_{entry.stem[:8]}.json")
 
 
 if __name__ == "__main__":

@@ -34,12 +34,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from act_trainset import summarize  # noqa: E402
-from bc_flow_eval import ChunkPolicy  # noqa: E402
+from bc_flow_eval import ChunkPolicy, save_result  # noqa: E402
 
 from baselines.act import _harness_demos, _rollout  # noqa: E402
 from baselines.qcfql import OneStepPolicy, QCFQLAgent  # noqa: E402
 from window_bench.data.replay import ChunkReplay  # noqa: E402
-from window_bench.harness.evaluation import atomic_write_text, provenance  # noqa: E402
 from window_bench.harness.files import load_state, sha256_file  # noqa: E402
 from window_bench.harness.seeds import eval_seeds  # noqa: E402
 
@@ -163,13 +162,8 @@ def main(argv=None) -> dict:
               f"{g['latched']['student_teacher_l2_median']:.3f} | |dQ/du| "
               f"{g['before_latch']['q_grad_norm_median']:.4f} / "
               f"{g['latched']['q_grad_norm_median']:.4f} | {s['wall_s']} s", flush=True)
-    result["provenance"] = provenance()
-    Path(a.out).mkdir(parents=True, exist_ok=True)
     tag = "" if a.arms != ["scratch"] else "_scratch" + "x".join(map(str, a.scratch_hidden))
-    out = Path(a.out) / f"student_gap_{entry.stem[:8]}{tag}.json"
-    atomic_write_text(out, json.dumps(result, indent=1))
-    print(out)
-    return result
+    return save_result(result, Path(a.out) / f"student_gap_{entry.stem[:8]}{tag}.json")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,66 @@
+"""The setting-B grasp diagnostics (experiments/sanity/grasp_timing.py): the gap they follow
+is the env's engage quantity, and a policy that descends onto the panel with the vacuum on
+is recorded as acquiring it within reach."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import window_bench  # noqa: F401
+from window_bench.envs.env import SNAP_DISTANCE
+
+SANITY = Path(__file__).parents[1] / "experiments" / "sanity"
+
+
+def _script(name):
+    sys.path.insert(0, str(SANITY))
+    try:
+        spec = importlib.util.spec_from_file_location(name, SANITY / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(SANITY))
+    return module
+
+
+def test_face_gap_is_the_tcp_height_above_the_suction_face_and_matches_the_engage_test():
+    g = _script("grasp_timing")
+    env = gym.make("WindowInstall-B-v0", obs_mode="flat")
+    env.reset(seed=100000)
+    u = env.unwrapped
+    face_z = u.data.xpos[u.scene.panel_body][2] + u.cfg.panel_thickness / 2
+    tcp_z = u.data.site_xpos[u.scene.tcp_site][2]
+    assert g.face_gap(u) == pytest.approx(tcp_z - face_z, abs=1e-9)   # the panel lies flat
+    assert g.face_gap(u) > SNAP_DISTANCE and not u.suction_valid()
+    env.close()
+
+
+class Descend:
+    """Straight down (tool z points down at the start of B) with the vacuum on, creeping the
+    last centimetres (the face is at 80 mm): a latch made while driving on breaks at once."""
+    h = 1                                         # re-decide every step
+
+    def act(self, obs):
+        z = obs[16]                               # obs[14:17]: the TCP position
+        down = 1.0 if z > 0.15 else 0.2 if z > 0.095 else 0.05
+        return np.tile(np.array([0, 0, down, 0, 0, 0, 1.0], np.float32), (self.h, 1))
+
+
+class Hover(Descend):
+    def act(self, obs):
+        return np.zeros((self.h, 7), np.float32)
+
+
+def test_episode_records_acquisition_within_reach_and_a_miss_without_it():
+    g = _script("grasp_timing")
+    hit = g.episode(Descend(), "WindowInstall-B-v0", 100001)   # panel under the TCP
+    assert hit["acquired"] and hit["vacuum_on_within_reach_steps"] >= 1
+    assert hit["min_gap_mm"] <= 1000 * SNAP_DISTANCE and hit["steps"] < 100
+    miss = g.episode(Hover(), "WindowInstall-B-v0", 100000)
+    assert not miss["acquired"] and miss["vacuum_on_steps"] == 0 and miss["steps"] == 600
+    s = g.summarize([hit, miss])
+    assert (s["acquired"], s["missed"], s["missed_never_commanded_vacuum"]) == (1, 1, 1)
