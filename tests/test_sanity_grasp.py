@@ -1,4 +1,4 @@
-"""The setting-B grasp diagnostics (experiments/sanity/grasp_timing.py): the gap they follow
+"""The setting-B diagnostics (experiments/sanity/grasp_timing.py, student_gap.py): the gap they follow
 is the env's engage quantity, and a policy that descends onto the panel with the vacuum on
 is recorded as acquiring it within reach."""
 
@@ -64,3 +64,29 @@ def test_episode_records_acquisition_within_reach_and_a_miss_without_it():
     assert not miss["acquired"] and miss["vacuum_on_steps"] == 0 and miss["steps"] == 600
     s = g.summarize([hit, miss])
     assert (s["acquired"], s["missed"], s["missed_never_commanded_vacuum"]) == (1, 1, 1)
+
+
+def test_student_gap_splits_by_latch_and_fresh_student_leaves_the_agent_alone():
+    import torch
+
+    from baselines.qcfql import QCFQLAgent, QCFQLConfig
+
+    s = _script("student_gap")
+    agent = QCFQLAgent(52, 7, QCFQLConfig(h=2, hidden=(16,)), seed=0)
+    obs = np.zeros((6, 52), np.float32)
+    obs[:2, s.VACUUM_INDEX] = 1.0                       # two latched states, four before
+    gap = s.gap_by_stage(agent, obs)
+    assert (gap["latched"]["states"], gap["before_latch"]["states"]) == (2, 4)
+    o = agent.normalize(torch.as_tensor(obs))
+    teacher = agent.teacher_actions(o, torch.zeros(6, 14))
+    with torch.no_grad():
+        d = (agent.ema_student(o, torch.zeros(6, 14)).clamp(-1, 1) - teacher).norm(dim=-1)
+    assert gap["before_latch"]["student_teacher_l2_median"] == pytest.approx(
+        float(d[2:].median()), rel=1e-6)
+    before = [p.clone() for p in agent.student.parameters()]
+    wide = s.fresh_student(agent, (32, 32), seed=1)
+    widths = [m.out_features for m in wide.student.modules() if isinstance(m, torch.nn.Linear)]
+    assert widths == [32, 32, 14] and wide.ema_student.net[0].out_features == 32
+    assert all(torch.equal(p, q) for p, q in zip(agent.student.parameters(), before))
+    assert torch.equal(wide.teacher_actions(agent.normalize(torch.as_tensor(obs)),
+                                            torch.zeros(6, 14)), teacher)   # same teacher
