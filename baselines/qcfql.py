@@ -176,13 +176,14 @@ class QCFQLConfig:
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
                 raise ValueError(f"QCFQLConfig.{name} = {value!r} is not allowed: it must be "
                                  f"an integer >= 1")
-        if not self.hidden or any(isinstance(w, bool) or not isinstance(w, numbers.Integral)
-                                  or w < 1 for w in self.hidden):
+        def widths_ok(widths) -> bool:
+            return bool(widths) and all(not isinstance(w, bool) and isinstance(w, numbers.Integral)
+                                        and w >= 1 for w in widths)
+
+        if not widths_ok(self.hidden):
             raise ValueError(f"QCFQLConfig.hidden = {self.hidden!r} is not allowed: it must be "
                              f"a non-empty tuple of integers >= 1")
-        if self.student_hidden is not None and (not self.student_hidden or any(
-                isinstance(w, bool) or not isinstance(w, numbers.Integral) or w < 1
-                for w in self.student_hidden)):
+        if self.student_hidden is not None and not widths_ok(self.student_hidden):
             raise ValueError(f"QCFQLConfig.student_hidden = {self.student_hidden!r} is not "
                              f"allowed: it must be null or a non-empty tuple of integers >= 1")
         # Finite bounds only: Infinity or 1e30 would pass an open range and crash later.
