@@ -178,6 +178,9 @@ def test_tiny_grid_on_ray_resumes_shares_stage1_and_makes_its_tables(tmp_path):
             assert (r["final_eval"]["seed_set"], r["final_eval"]["episodes"]) == ("test", 2)
             assert r["final_eval"]["seeds"] == [500000, 500001]
             assert len(r["final_eval"]["policy_sha256"]) == 64
+            lost = r["final_eval"]["suction_lost_by"]     # why suction was lost, per episode
+            assert set(lost) == {"grip_break", "commanded"}
+            assert sum(lost.values()) <= r["final_eval"]["failure_modes"].get("suction_lost", 0)
         assert a["stage1"]["key"] == b["stage1"]["key"]
         assert sorted([a["stage1"]["cache_hit"], b["stage1"]["cache_hit"]]) == [False, True]
         strip = lambda c: {k: v for k, v in c.items() if k != "wall_clock_s"}  # noqa: E731

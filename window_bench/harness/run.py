@@ -181,6 +181,14 @@ def summarize_eval(rows: list[dict]) -> dict:
                                                  for x, c, b in zip(lost, released, broke))}}
 
 
+#: What a results file's ``final_eval`` keeps of :func:`summarize_eval` (besides seeds, policy
+#: and its hash): success, stage-wise rates, failure modes and why suction was lost.
+FINAL_EVAL_KEYS = ("episodes", "successes", "success_rate", "wilson95", "cycle_time_s", "pr_S",
+                   "pr_I_given_S", "pr_T_given_I", "failure_modes",
+                   "episodes_with_commanded_release", "episodes_with_grip_break",
+                   "suction_lost_by")
+
+
 def time_to_threshold(rates: list[float], steps: list[int], threshold: float = 0.95,
                       J: int = TIME_TO_95_J) -> int | None:
     """First checkpoint step from which raw success >= threshold for J consecutive
@@ -294,7 +302,8 @@ class Run:
                  agent_config: dict | None = None, h: int | None = None,
                  final_episodes: int | None = None, final_seed_set: str = "dev",
                  stage1_cache: str | os.PathLike | None = None,
-                 eval_workers: int | None = None):
+                 eval_workers: int | None = None,
+                 pixel_demos_cache: str | os.PathLike | None = None):
         self.method = get_method(method)
         if h is not None:    # Tables 5/6: replay, agent and chunking all follow method.h
             if not agent_class(self.method.agent).follows_method_h:
@@ -337,6 +346,9 @@ class Run:
         self.agent_cls.make_config(self.method.h, self.profile, self.agent_config)
         self.out = Path(out)
         self.demos_root = Path(demos) if demos is not None else self.out / "demos"
+        # The pixel track's re-observed demos (pixels/demo_cache.py), beside the demos.
+        self.pixel_demos_cache = Path(pixel_demos_cache) if pixel_demos_cache is not None \
+            else self.demos_root / "pixel_cache"
         self.progress, self.save_every_s = progress, float(save_every_s)
         h = self.agent_config.get("h", self.method.h)
         if h != self.method.h:
@@ -411,9 +423,10 @@ class Run:
             eps = self._raw_demos = self._raw_demo_episodes(collect=True)
         if self.track == "pixels":   # re-observed once per Run: it renders and encodes
             if self._pixel_demos is None:
-                from window_bench.pixels.track import pixel_demos
+                from window_bench.pixels.demo_cache import cached_pixel_demos
 
-                self._pixel_demos = pixel_demos(eps, self.env_id, self.backbone, self.progress)
+                self._pixel_demos, self._pixel_demos_record = cached_pixel_demos(
+                    eps, self.env_id, self.backbone, self.pixel_demos_cache, self.progress)
             return self._pixel_demos
         return eps
 
@@ -429,6 +442,7 @@ class Run:
                 "checkpoints": [], "grad_steps": 0, "update_credit": 0.0, "wall_clock_s": 0.0,
                 "next_checkpoint": 0, "obs_dim": int(demos[0].observations.shape[1]),
                 "h": self.method.h,
+                "pixel_demos": [self._pixel_demos_record] if self.track == "pixels" else None,
                 "provenance_start": provenance()}
 
     def _make_replays(self, demos) -> None:
@@ -463,6 +477,8 @@ class Run:
                              f"asks for h = {self.method.h}")
         self.agent = self.agent_cls.from_state_dict(st["agent"])
         self.agent.attach_demos(self._demos())
+        if self.track == "pixels":   # one record per start: cache key, hit, seconds
+            self.c.setdefault("pixel_demos", []).append(self._pixel_demos_record)
         self.demo_rb, self.online_rb = (_replay_from_state(st[k]) for k in ("demo_rb", "online_rb"))
         # After the agent: building one may seed the global RNGs (SB3 does).
         torch.set_rng_state(st["torch_rng"])
@@ -785,16 +801,13 @@ class Run:
         out = {"env_steps": last["env_steps"], "policy": path.relative_to(self.out).as_posix(),
                "policy_sha256": sha256_file(path)}
         if self.final_episodes is None:
-            keys = ("episodes", "successes", "success_rate", "wilson95", "cycle_time_s", "pr_S",
-                    "pr_I_given_S", "pr_T_given_I", "failure_modes")
             return {"seed_set": "dev", "seeds": [DEV_SEED0, DEV_SEED0 + last["episodes"] - 1],
-                    **out, **{k: last[k] for k in keys}}
+                    **out, **{k: last[k] for k in FINAL_EVAL_KEYS if k in last}}
         r = evaluate_policy_file(path, self.final_episodes, self.profile.eval_workers,
                                  seed_set=self.final_seed_set,
                                  max_steps=self.profile.max_episode_steps)
-        keys = ("episodes", "successes", "success_rate", "wilson95", "cycle_time_s", "pr_S",
-                "pr_I_given_S", "pr_T_given_I", "failure_modes", "seed_set")
-        return {"seeds": r["eval_seeds"], **out, **{k: r[k] for k in keys}}
+        return {"seeds": r["eval_seeds"], **out,
+                **{k: r[k] for k in (*FINAL_EVAL_KEYS, "seed_set")}}
 
     def _finish(self) -> dict:
         cps = self.c["checkpoints"]
@@ -825,6 +838,7 @@ class Run:
             "eval_seeds": [EVAL_SEED0, EVAL_SEED0 + self.profile.eval_episodes - 1],
             "final_eval": final_eval,
             "stage1": self.c.get("stage1"),
+            "pixel_demos": self.c.get("pixel_demos"),            # pixel track: demo cache
             "provenance": provenance(),                          # when the results were written
             "provenance_start": self.c.get("provenance_start"),  # the code the run started on
         }
