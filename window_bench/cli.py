@@ -280,7 +280,8 @@ def cmd_run(args) -> int:
                   track=args.track, encoder_weights=args.encoder_weights,
                   agent_config=parse_overrides(args.agent_config), h=args.h,
                   final_episodes=args.final_episodes, final_seed_set=args.final_seed_set,
-                  stage1_cache=args.stage1_cache, eval_workers=args.eval_workers)
+                  stage1_cache=args.stage1_cache, eval_workers=args.eval_workers,
+                  pixel_demos_cache=args.pixel_demos_cache)
     except (ValueError, FileExistsError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -495,6 +496,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--stage1-cache", default=None, metavar="DIR",
                    help="share Stage I with runs of the same agent config, h, demos and seed "
                         "through this cache directory (bench sweep sets it)")
+    r.add_argument("--pixel-demos-cache", default=None, metavar="DIR",
+                   help="--track pixels: keep the demos re-observed under the encoder in this "
+                        "cache directory (default: pixel_cache/ in the demos directory)")
     r.add_argument("--eval-workers", type=_positive, default=None, metavar="N",
                    help="evaluation processes per checkpoint (default: the profile's; 1 "
                         "evaluates in the training process, so a run uses one core)")
