@@ -371,9 +371,12 @@ def test_bench_run_on_the_pixel_track(tmp_path):
     assert saved["encoder"]["sha256"] and saved["encoder"]["command"].startswith("bench encoder")
     assert len(saved["checkpoints"]) == 1 and saved["checkpoints"][0]["episodes"] == 2
     # Determinism: the same seed again (on the same demonstrations) gives the same policy
-    # tensors and the same evaluation.
+    # tensors and the same evaluation, also through the Stage I cache `bench sweep` passes.
     again = Run("qcfql-offline", ENV, "smoke", 0, tmp_path / "again", track="pixels",
-                demos=out / "demos", progress=False).train()
+                demos=out / "demos", stage1_cache=tmp_path / "stage1_cache",
+                progress=False).train()
+    assert again["stage1"]["cache_hit"] is False and len(list(
+        (tmp_path / "stage1_cache").glob("*.safetensors"))) == 1
     drop = lambda cp: {k: v for k, v in cp.items() if k != "wall_clock_s"}  # noqa: E731
     assert [drop(c) for c in again["checkpoints"]] == [drop(c) for c in r["checkpoints"]]
     from safetensors.torch import load_file

@@ -135,6 +135,26 @@ def test_schedule_starts_one_cell_per_stage1_group_first(tmp_path):
     assert Cell("act", "WindowInstall-A-v0", 0, "smoke").stage1_group is None
 
 
+def test_stage1_key_covers_every_agent_with_a_stage_i_on_both_tracks():
+    """Every method with offline pretraining has a Stage I cache key on the state and the
+    pixel track (a pixel sweep once died here with KeyError 'qcfql-pixels' after re-observing
+    its demos); a state kind hashes only its own module, so the grid's cached entries stay
+    valid, and a pixel kind also hashes the pixel front end."""
+    from window_bench.harness.methods import METHODS
+    from window_bench.harness.stage1 import _source_sha256, key_material
+    from window_bench.pixels.track import track_agent_kind
+
+    kinds = {m.agent for m in METHODS.values() if m.offline_pretrain}
+    assert kinds == {"qcfql", "hilserl", "act"}
+    code = lambda kind: key_material(kind, {}, 1, 1, "d", 0)["code_sha256"]  # noqa: E731
+    for kind in kinds:
+        pixel = track_agent_kind(kind, "pixels")
+        assert code(kind) == _source_sha256(f"baselines.{kind}", "window_bench.data.replay")
+        assert code(pixel) not in (code(kind), None)
+    with pytest.raises(ValueError, match="'sac' has no Stage I"):
+        key_material("sac", {}, 1, 1, "d", 0)
+
+
 def test_cell_status_done_partial_new_conflict(tmp_path):
     g = _grid(tmp_path, GRID)
     c = g.cells[0]

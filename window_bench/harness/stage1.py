@@ -48,6 +48,23 @@ def _source_sha256(*modules: str) -> str:
 
 
 _AGENT_MODULES = {"qcfql": "baselines.qcfql", "hilserl": "baselines.hilserl", "act": "baselines.act"}
+#: What a pixel-track agent adds to its state-track agent's code (window_bench/pixels/track.py
+#: PIXEL_KINDS): the front end (aggregation, fusion) and the encoder it trains through.
+_PIXEL_MODULES = ("window_bench.pixels.agent", "window_bench.pixels.encoder")
+
+
+def agent_modules(agent_kind: str) -> tuple[str, ...]:
+    """The modules whose source a Stage I result of ``agent_kind`` depends on (beside the
+    replay); a state kind hashes exactly its own module, so its keys are as they always were."""
+    from window_bench.pixels.track import PIXEL_KINDS
+
+    if agent_kind in _AGENT_MODULES:
+        return (_AGENT_MODULES[agent_kind],)
+    state_kind = {v: k for k, v in PIXEL_KINDS.items()}.get(agent_kind)
+    if state_kind in _AGENT_MODULES:
+        return (_AGENT_MODULES[state_kind], *_PIXEL_MODULES)
+    raise ValueError(f"agent kind {agent_kind!r} has no Stage I to cache; kinds with one: "
+                     f"{', '.join([*_AGENT_MODULES, *(PIXEL_KINDS[k] for k in _AGENT_MODULES)])}")
 
 
 def demos_sha256(demos) -> str:
@@ -68,7 +85,7 @@ def key_material(agent_kind: str, agent_config: dict, offline_steps: int, batch_
 
     return {"agent": agent_kind, "agent_config": agent_config, "offline_steps": int(offline_steps),
             "batch_size": int(batch_size), "demos_sha256": demos_digest, "seed": int(seed),
-            "code_sha256": _source_sha256(_AGENT_MODULES[agent_kind], "window_bench.data.replay"),
+            "code_sha256": _source_sha256(*agent_modules(agent_kind), "window_bench.data.replay"),
             "torch": torch.__version__}
 
 
