@@ -100,7 +100,8 @@ def test_a_miss_computes_and_writes_a_hit_returns_it_bit_for_bit(tmp_path, demos
     _assert_bit_identical(out, reference)
     key = rec["key"]
     entry = json.loads((tmp_path / f"{key}.json").read_text())
-    assert entry["key"] == key and entry["bytes"] == (tmp_path / f"{key}.safetensors").stat().st_size
+    assert entry["key"] == key
+    assert entry["bytes"] == (tmp_path / f"{key}.safetensors").stat().st_size
     assert entry["material"] == key_material(demos, ENV, backbone)
     assert cache_key(entry["material"]) == key
     # float16 feature maps + float32 proprioception: about half of the float32 observations

@@ -29,19 +29,17 @@ episode count) is reported on one line and recomputed, never used.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import fcntl
 import hashlib
 import json
 import os
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from window_bench.harness.evaluation import atomic_write, atomic_write_text
+from window_bench.harness.stage1 import Stage1Cache
 
 KIND = "pixel_demos"
 #: Bump when what an entry holds, or how it is laid out, changes.
@@ -144,25 +142,9 @@ def _unpack(tree: dict, demos: list) -> list:
     return out
 
 
-class PixelDemoCache:
-    """A directory of re-observed demonstrations, ``<key>.safetensors`` + ``<key>.json``."""
-
-    def __init__(self, root: str | os.PathLike):
-        self.root = Path(root)
-        self.root.mkdir(parents=True, exist_ok=True)
-
-    def path(self, key: str) -> Path:
-        return self.root / f"{key}.safetensors"
-
-    @contextlib.contextmanager
-    def lock(self, key: str):
-        """Held while one run computes ``key``; the OS releases it if that run dies."""
-        with open(self.root / f"{key}.lock", "a") as f:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX)
-            try:
-                yield
-            finally:
-                fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+class PixelDemoCache(Stage1Cache):
+    """A directory of re-observed demonstrations, ``<key>.safetensors`` + ``<key>.json``: the
+    Stage I cache's layout and ``<key>.lock``, with entries of its own kind."""
 
     def load(self, key: str, demos: list):
         """The re-observed ``demos`` of entry ``key``; ``None`` when there is none, or when it
