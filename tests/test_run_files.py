@@ -178,6 +178,19 @@ def test_a_pickle_payload_is_refused_by_eval_and_resume(runs, tmp_path, capsys):
     assert not marker.exists() and snapshot(d) == before
 
 
+def test_a_cut_state_file_is_not_named_a_pickle(tmp_path):
+    """A safetensors header length whose low byte is 0x80 (as a raw pickle's first byte) in a
+    cut file is reported as cut or corrupt; a real pickle is still named as one."""
+    import pickle
+
+    cut = (0x80).to_bytes(8, "little") + b'{"__metadata__": {"format": '
+    with pytest.raises(RunFileError, match=r"x.safetensors: not a window-bench state file, or a "
+                                           r"truncated or corrupt one"):
+        parse_state(cut, tmp_path / "x.safetensors", "state")
+    with pytest.raises(RunFileError, match=r"a pickle file \(torch.save\), refused"):
+        parse_state(pickle.dumps({"a": 1}), tmp_path / "y.pt", "state")
+
+
 # ---------------------------------------------------------------- flipped bytes, truncation
 @pytest.mark.parametrize("fault", ["flip", "truncate"])
 @pytest.mark.parametrize("target", ["state", "policy", "policy outside its run"])

@@ -156,7 +156,9 @@ def parse_state(data: bytes, path, kind: str):
         tensors = load(data)
     except (SafetensorError, ValueError, KeyError, TypeError, AttributeError, RecursionError,
             struct.error) as e:
-        if data.startswith(_PICKLE_MAGIC):   # never unpickled: named, to say why
+        # never unpickled: named, to say why; a safetensors file (its JSON header opens at
+        # byte 8) whose header length happens to begin with 0x80 is a cut file, not a pickle
+        if data.startswith(_PICKLE_MAGIC) and data[8:9] != b"{":
             raise RunFileError(f"{path}: a pickle file (torch.save), refused: loading pickle "
                                f"can run code; window-bench reads only the .safetensors files "
                                f"bench run writes") from None
