@@ -346,9 +346,9 @@ class Run:
         self.agent_cls.make_config(self.method.h, self.profile, self.agent_config)
         self.out = Path(out)
         self.demos_root = Path(demos) if demos is not None else self.out / "demos"
-        # The pixel track's re-observed demos (pixels/demo_cache.py), beside the demos.
+        # The pixel track's re-observed demos (pixels/demo_cache.py); None: beside the demos.
         self.pixel_demos_cache = Path(pixel_demos_cache) if pixel_demos_cache is not None \
-            else self.demos_root / "pixel_cache"
+            else None
         self.progress, self.save_every_s = progress, float(save_every_s)
         h = self.agent_config.get("h", self.method.h)
         if h != self.method.h:
@@ -423,10 +423,11 @@ class Run:
             eps = self._raw_demos = self._raw_demo_episodes(collect=True)
         if self.track == "pixels":   # re-observed once per Run: it renders and encodes
             if self._pixel_demos is None:
-                from window_bench.pixels.demo_cache import cached_pixel_demos
+                from window_bench.pixels.demo_cache import DEFAULT_SUBDIR, cached_pixel_demos
 
+                cache = self.pixel_demos_cache or self.demos_root / DEFAULT_SUBDIR
                 self._pixel_demos, self._pixel_demos_record = cached_pixel_demos(
-                    eps, self.env_id, self.backbone, self.pixel_demos_cache, self.progress)
+                    eps, self.env_id, self.backbone, cache, self.progress)
             return self._pixel_demos
         return eps
 
