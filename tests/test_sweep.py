@@ -170,6 +170,65 @@ def test_cell_status_done_partial_new_conflict(tmp_path):
     assert cell_status(c, g, tmp_path).startswith("conflict")
 
 
+def test_status_reports_each_cell_from_its_files_without_starting_anything(tmp_path):
+    import fcntl
+    import os
+
+    import torch
+
+    from window_bench.harness.files import LOCK, dump_state
+    from window_bench.harness.sweep import LOGS
+
+    p = tmp_path / "g.toml"
+    p.write_text(GRID)
+    out = tmp_path / "runs"
+    g = load_grid(p)
+    done, offline, online, failed = (c.path(out) for c in g.cells)
+    for d in (done, online, offline):
+        d.mkdir(parents=True)
+    (done / "results.json").write_text(json.dumps({
+        "final_eval": {"episodes": 2, "seed_set": "test", "successes": 1},
+        "final": {"wall_clock_s": 600.0}}))
+    counters = {"stage": "online", "offline_done": 40, "env_steps": 150, "wall_clock_s": 120.0,
+                "episodes": [{"steps": 100}, {"steps": 50}]}
+    (online / "state.safetensors").write_bytes(dump_state(
+        {"counters": counters, "w": torch.zeros(3)}, "state"))
+    (offline / "state.safetensors").write_bytes(dump_state(
+        {"counters": dict(counters, stage="offline", env_steps=0, episodes=[])}, "state"))
+    (out / LOGS / g.cells[3].env_id).mkdir(parents=True)
+    (out / LOGS / f"{g.cells[3].name}.json").write_text(json.dumps(
+        {"status": "failed", "rc": 1, "error": ""}))
+    # the online cell is held by a "running" process
+    fd = os.open(online / LOCK, os.O_RDWR | os.O_CREAT)
+    os.write(fd, b"pid 4242: bench run ... (since 2026-12-01T00:00:00Z)")
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    try:
+        r = subprocess.run([sys.executable, "-m", "window_bench.cli", "sweep", str(p), "--out",
+                            str(out), "--status"], capture_output=True, text=True, timeout=120)
+    finally:
+        os.close(fd)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert len(lines) == 5
+    status = {line.split()[1]: line for line in lines[:4]}
+    assert status[g.cells[0].name].startswith("done") and "1/2 on the test seeds" in \
+        status[g.cells[0].name] and "10 min" in status[g.cells[0].name]
+    assert status[g.cells[2].name].startswith("running")
+    assert "pid 4242" in status[g.cells[2].name]
+    assert "Stage III, 150/400 env steps, 2 episodes, 2 min so far" in status[g.cells[2].name]
+    assert status[g.cells[1].name].startswith("partial") and "Stage I, 40 updates" in \
+        status[g.cells[1].name]
+    assert status[g.cells[3].name].startswith("failed") and "exit code 1" in \
+        status[g.cells[3].name]
+    assert lines[4].endswith("4 cells; done 1, running 1, partial 1, failed 1")
+    assert not (out / "sweep-g.json").exists()       # nothing was run or recorded
+    # the lock is free again: the same cell now reads as partial
+    r = subprocess.run([sys.executable, "-m", "window_bench.cli", "sweep", str(p), "--out",
+                        str(out), "--status", "--only", g.cells[2].name],
+                       capture_output=True, text=True, timeout=120)
+    assert r.stdout.splitlines()[0].startswith("partial")
+
+
 def test_cli_bad_grid_exit_2(tmp_path):
     p = tmp_path / "g.toml"
     p.write_text("M = -3\n")

@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import sys
 from pathlib import Path
@@ -337,8 +338,24 @@ def cmd_leaderboard(args) -> int:
 
 
 def cmd_sweep(args) -> int:
-    from window_bench.harness.sweep import GridError, Sweep, load_grid
+    from window_bench.harness.sweep import GridError, Sweep, grid_report, load_grid, select
 
+    if args.status:
+        try:
+            grid = select(load_grid(args.grid), args.only)
+        except GridError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        rows = grid_report(grid, args.out)
+        width = max(len(r["cell"]) for r in rows)
+        for r in rows:
+            print(f"{r['status']:<9} {r['cell']:<{width}}  {r['detail']}".rstrip())
+        counts = collections.Counter(r["status"] for r in rows)
+        print(f"grid {grid.name} under {args.out}: {len(rows)} cells; "
+              + ", ".join(f"{k} {counts[k]}" for k in
+                          ("done", "running", "partial", "new", "failed", "conflict")
+                          if counts[k]))
+        return 0
     try:
         sweep = Sweep(load_grid(args.grid), args.out, workers=args.workers,
                       address=args.address, progress=not args.no_progress,
@@ -532,6 +549,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run only the cells whose name (<env>/<run>, as in the progress "
                          "view) matches one of these shell patterns, e.g. '*/qcfql-cpu-s*'")
     sw.add_argument("--no-progress", action="store_true", help="one line per finished cell only")
+    sw.add_argument("--status", action="store_true",
+                    help="start nothing: print each cell's state (done with its result, "
+                         "running, partial with its stage and counters, new, failed) from "
+                         "the files under --out, and the counts")
     sw.add_argument("--no-stage1-cache", action="store_true",
                     help="every cell computes its own Stage I (to measure what the cache saves)")
     sw.set_defaults(func=cmd_sweep)

@@ -266,21 +266,49 @@ def _in_use(out, holder: str) -> str:
             f"or choose another --out")
 
 
-def check_unlocked(out) -> None:
-    """Stop at once, before any heavy import, when another process holds ``out``'s lock
-    (a momentary shared lock; :meth:`RunDir._lock` retries briefly for this probe)."""
+def lock_holder(out) -> str | None:
+    """Who holds ``out``'s lock (the holder's line: pid, command, since when), or None when
+    no process does. A momentary shared lock, so it never blocks the holder;
+    :meth:`RunDir._lock` retries briefly for this probe."""
     import fcntl
 
     path = Path(out) / LOCK
     if not path.is_file():
-        return
+        return None
     fd = os.open(path, os.O_RDONLY)
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
-        raise RunFileError(_in_use(out, _holder(fd))) from None
+        return _holder(fd)
     finally:
         os.close(fd)
+    return None
+
+
+def check_unlocked(out) -> None:
+    """Stop at once, before any heavy import, when another process holds ``out``'s lock."""
+    holder = lock_holder(out)
+    if holder is not None:
+        raise RunFileError(_in_use(out, holder))
+
+
+def state_counters(path) -> dict | None:
+    """The training counters a state file's header records (``stage``, ``offline_done``,
+    ``env_steps``, ``episodes``...), read from its JSON header alone, without the tensors or
+    the checksum; None for a file that is missing, cut or not a window-bench state. For a
+    progress report only: a resume loads the file with :func:`load_state`."""
+    try:
+        with open(path, "rb") as f:
+            (n,) = struct.unpack("<Q", f.read(8))
+            if n > 64 << 20:
+                return None
+            header = json.loads(f.read(n))["__metadata__"]
+        if header.get("format") != STATE_FORMAT:
+            return None
+        counters = json.loads(header["tree"]).get("counters")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, struct.error):
+        return None
+    return counters if isinstance(counters, dict) else None
 
 
 def check_out_dir(out) -> Path:

@@ -296,6 +296,66 @@ def final_policy(run_dir: Path) -> Path:
     return run_dir / rel
 
 
+def cell_report(cell: Cell, grid: Grid, out: Path) -> dict:
+    """Where one cell stands, read from its files alone (nothing is started, locked or
+    imported beyond the standard library): ``status`` as :func:`cell_status`, with
+    ``running`` for a partial or new cell whose run directory another process holds, and
+    ``failed`` for a cell whose last sweep attempt ended with an error and left no state;
+    ``detail`` says how far it is (a finished cell's final success, a partial one's stage and
+    counters, as its last saved state records them)."""
+    from window_bench.harness.files import lock_holder, state_counters
+
+    status = cell_status(cell, grid, out)
+    p = cell.path(out)
+    detail = ""
+    if status == "done":
+        r = _read_json(p) if cell.on is not None else (_read_json(p / "results.json") or {})
+        fe = r if cell.on is not None else r.get("final_eval") or {}
+        k, n = fe.get("successes"), fe.get("episodes")
+        wall = (r.get("final") or {}).get("wall_clock_s")
+        detail = f"{k}/{n} on the {fe.get('seed_set')} seeds" if k is not None else ""
+        detail += f", {wall / 60:.0f} min wall clock in bench run" if wall else ""
+    elif status.startswith("conflict"):
+        status, detail = "conflict", status.removeprefix("conflict: ")
+    else:
+        if cell.on is None:
+            holder = lock_holder(p)
+            if holder is not None:
+                status = "running"
+                pid = holder.split(":", 1)[0]
+                since = holder.rsplit("(since ", 1)[-1].rstrip(")") if "(since " in holder else ""
+                detail = f"{pid}, since {since}; " if since else f"{pid}; "
+            c = state_counters(p / "state.safetensors")
+            if c is not None:
+                stage = c.get("stage")
+                if stage == "offline":
+                    detail += f"Stage I, {c.get('offline_done', 0):,} updates"
+                elif stage in ("warm", "online"):
+                    m, prof = get_method(cell.method), get_profile(cell.profile)
+                    budget = prof.budget_steps if m.online_updates else prof.warm_steps
+                    detail += (f"Stage {'II' if stage == 'warm' else 'III'}, "
+                               f"{c.get('env_steps', 0):,}/{budget:,} env steps, "
+                               f"{len(c.get('episodes') or ())} episodes")
+                elif stage == "evaluate0":
+                    detail += "Stage I done, checkpoint-0 evaluation"
+                elif stage == "done":
+                    detail += "training done, final evaluation"
+                else:
+                    detail += f"stage {stage}"
+                detail += f", {(c.get('wall_clock_s') or 0) / 60:.0f} min so far"
+        last = _read_json(out / LOGS / f"{cell.name}.json") or {}
+        if status == "new" and last.get("status") == "failed":
+            status = "failed"
+            detail = (f"exit code {last.get('rc')} {last.get('error', '')}".strip()
+                      + f"; log {out / LOGS / (cell.name + '.log')}")
+    return {"cell": cell.name, "status": status, "detail": detail.rstrip("; ")}
+
+
+def grid_report(grid: Grid, out: str | os.PathLike) -> list[dict]:
+    """:func:`cell_report` of every cell of ``grid`` under ``out``, in the grid's order."""
+    return [cell_report(c, grid, Path(out)) for c in grid.cells]
+
+
 def demos_dir(cell: Cell, grid: Grid, out: Path) -> Path:
     n = get_profile(cell.profile).n_demos
     return out / "demos" / f"{cell.env_id}-{grid.operator}-n{n}-s{cell.seed}"
@@ -396,20 +456,26 @@ def schedule(cells) -> list[Cell]:
     return order + [c for c in cells if c.on is not None]
 
 
+def select(grid: Grid, only: list[str] | None) -> Grid:
+    """The grid cut to the cells whose name matches one of the shell patterns ``only``
+    (None or empty: all of them); :class:`GridError` when no cell matches."""
+    if not only:
+        return grid
+    cells = tuple(c for c in grid.cells if any(fnmatch.fnmatchcase(c.name, pattern)
+                                               for pattern in only))
+    if not cells:
+        raise GridError(f"{grid.path}: --only {' '.join(only)} matches none of its "
+                        f"{len(grid.cells)} cells (e.g. {grid.cells[0].name})")
+    return dataclasses.replace(grid, cells=cells)
+
+
 class Sweep:
     """Runs a grid's cells on Ray (see the module docstring)."""
 
     def __init__(self, grid: Grid, out: str | os.PathLike, workers: int | None = None,
                  address: str | None = None, progress: bool = True, stage1_cache: bool = True,
                  only: list[str] | None = None):
-        if only:     # a subset of the grid: cells whose name matches a pattern
-            cells = tuple(c for c in grid.cells if any(fnmatch.fnmatchcase(c.name, pattern)
-                                                       for pattern in only))
-            if not cells:
-                raise GridError(f"{grid.path}: --only {' '.join(only)} matches none of its "
-                                f"{len(grid.cells)} cells (e.g. {grid.cells[0].name})")
-            grid = dataclasses.replace(grid, cells=cells)
-        self.grid, self.out = grid, Path(out)
+        self.grid, self.out = select(grid, only), Path(out)
         self.stage1_cache = stage1_cache
         self.address = address
         self.workers = workers
