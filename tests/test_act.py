@@ -243,7 +243,7 @@ def test_harness_evaluates_act_with_a_query_every_step(monkeypatch):
     """The harness's ACT (make_agent with the profile's config) has h = 1, and its
     evaluation worker re-queries the policy at every environment step."""
     from window_bench.harness.methods import get_method, get_profile
-    from window_bench.harness.run import AgentPolicy, _eval_worker, make_agent
+    from window_bench.harness.run import AgentPolicy, Evaluator, make_agent
 
     agent = make_agent(get_method("act"), get_profile("smoke"), [synthetic_episode(23, 0)],
                        seed=0)
@@ -252,8 +252,7 @@ def test_harness_evaluates_act_with_a_query_every_step(monkeypatch):
     real = ACTAgent.predict_chunk
     monkeypatch.setattr(ACTAgent, "predict_chunk",
                         lambda self, obs: calls.append(1) or real(self, obs))
-    rows = _eval_worker((ACTAgent, agent.policy_state_dict(), "WindowInstall-A-v0",
-                         [100_000], 12))
+    rows = Evaluator("WindowInstall-A-v0", 1, 1, 12)(ACTAgent, agent.policy_state_dict())
     assert len(rows) == 1 and not rows[0]["success"]
     assert len(calls) == 12        # one query per step of the 12-step episode
 

@@ -7,7 +7,7 @@ import torch
 
 import window_bench.envs.env as E
 from baselines.hilserl import HILSERLAgent, HILSERLConfig
-from window_bench.harness.run import _eval_worker, summarize_eval
+from window_bench.harness.run import Evaluator, summarize_eval
 
 A = "WindowInstall-A-v0"
 HOLD = np.array([0, 0, 0, 0, 0, 0, 1.0], np.float32)   # zero motion, vacuum on
@@ -56,15 +56,38 @@ def test_summary_counts_releases_and_breaks():
     assert old["suction_lost_by"] == {"grip_break": 0, "commanded": 0}
 
 
-def test_evaluation_rows_record_commanded_releases():
-    """A policy whose grasp critic prefers 'release' drops the panel on its first step:
-    the harness's evaluation row records a commanded release and no grip break."""
+def _vacuum_policy(prefer: str) -> dict:
+    """A small HIL-SERL policy whose grasp critic always prefers ``prefer`` (release/hold)."""
     agent = HILSERLAgent(52, config=HILSERLConfig(hidden=(16,), batch_size=32))
     with torch.no_grad():
         last = [m for m in agent.grasp_critic.modules() if isinstance(m, torch.nn.Linear)][-1]
         last.weight.zero_()
-        last.bias.copy_(torch.tensor([1.0, 0.0]))     # argmax: release
-    rows = _eval_worker((HILSERLAgent, agent.policy_state_dict(), A, [100_000], 5))
+        last.bias.copy_(torch.tensor([1.0, 0.0] if prefer == "release" else [0.0, 1.0]))
+    return agent.policy_state_dict()
+
+
+def test_evaluation_rows_record_commanded_releases():
+    """A policy whose grasp critic prefers 'release' drops the panel on its first step:
+    the harness's evaluation row records a commanded release and no grip break."""
+    rows = Evaluator(A, 1, 1, 5)(HILSERLAgent, _vacuum_policy("release"))   # dev seed 100,000
     assert rows[0]["commanded_releases"] == 1 and rows[0]["grip_breaks"] == 0
     assert rows[0]["failure_mode"] == "suction_lost"
     assert summarize_eval(rows)["suction_lost_by"] == {"grip_break": 0, "commanded": 1}
+
+
+def test_pooled_evaluation_equals_in_process_and_shows_progress(capsys):
+    """Worker processes take one episode at a time (a progress bar over the episodes); the
+    rows equal the in-process evaluation's, and a second policy through the same pool is
+    evaluated as itself, not as the policy its workers built for the first call."""
+    release, hold = _vacuum_policy("release"), _vacuum_policy("hold")
+    alone = {p: Evaluator(A, 4, 1, 6)(HILSERLAgent, policy)
+             for p, policy in (("release", release), ("hold", hold))}
+    assert [r["commanded_releases"] for r in alone["release"]] == [1, 1, 1, 1]
+    assert [r["commanded_releases"] for r in alone["hold"]] == [0, 0, 0, 0]
+    pooled = Evaluator(A, 4, 2, 6, progress=True)
+    try:
+        assert pooled(HILSERLAgent, release) == alone["release"]
+        assert pooled(HILSERLAgent, hold) == alone["hold"]
+    finally:
+        pooled.close()
+    assert "4/4" in capsys.readouterr().err

@@ -308,7 +308,7 @@ def cmd_eval(args) -> int:
 
     try:
         r = evaluate_policy_file(args.checkpoint, args.episodes, args.eval_workers,
-                                 env_id=args.env, seed_set=args.seed_set)
+                                 env_id=args.env, seed_set=args.seed_set, progress=True)
     except (FileNotFoundError, ValueError) as e:   # a missing, foreign or corrupt file
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -126,32 +126,46 @@ class AgentPolicy:
 
 
 # ---------------------------------------------------------------------------- evaluation
-def _eval_worker(task) -> list[dict]:
-    agent_cls, policy_state, env_id, seeds, max_steps = task
-    torch.set_num_threads(1)
+def _eval_rollout(agent_cls: type, policy_state: dict, env_id: str, max_steps: int):
+    """A deterministic rollout of the policy in the env of its observation track."""
     import window_bench  # noqa: F401  (registers the envs in a spawned worker)
-
-    agent = agent_cls.from_policy_state_dict(policy_state)
     from window_bench.pixels.track import make_track_env
 
+    agent = agent_cls.from_policy_state_dict(policy_state)
     # The policy's observation track: a pixel agent names its encoder weights in its state.
     env = make_track_env(env_id, getattr(agent_cls, "track", "state"),
                          weights=policy_state.get("encoder_weights"), max_episode_steps=max_steps)
-    rollout = Rollout(env, AgentPolicy(agent, deterministic=True), env_id=env_id)
-    rows = []
-    for seed in seeds:
-        log = rollout.run(seed=seed, episode_id=seed)
-        info = rollout.info
-        rows.append({"seed": int(seed), "success": bool(log.terminated[-1]),
-                     "cycle_time_s": round(log.T * STEP_DT, 1),
-                     "suction_acquired": bool(info["suction_acquired"]),
-                     "insertion_entered": bool(info["insertion_entered"]),
-                     "failure_mode": "" if log.terminated[-1] else (info["failure_mode"] or "timeout"),
-                     # suction lost by a vacuum-off command vs grips broken at the holding limit
-                     "commanded_releases": int(info["suction_releases"]),
-                     "grip_breaks": int(info["suction_failures"])})
-    env.close()
-    return rows
+    return Rollout(env, AgentPolicy(agent, deterministic=True), env_id=env_id), env
+
+
+def _eval_episode(rollout: Rollout, seed: int) -> dict:
+    """One evaluation episode from the reset seed ``seed``; its row."""
+    log = rollout.run(seed=seed, episode_id=seed)
+    info = rollout.info
+    return {"seed": int(seed), "success": bool(log.terminated[-1]),
+            "cycle_time_s": round(log.T * STEP_DT, 1),
+            "suction_acquired": bool(info["suction_acquired"]),
+            "insertion_entered": bool(info["insertion_entered"]),
+            "failure_mode": "" if log.terminated[-1] else (info["failure_mode"] or "timeout"),
+            # suction lost by a vacuum-off command vs grips broken at the holding limit
+            "commanded_releases": int(info["suction_releases"]),
+            "grip_breaks": int(info["suction_failures"])}
+
+
+#: A pool worker's rollout for the evaluation in progress: (token, rollout, env).
+_WORKER_ROLLOUT: list = []
+
+
+def _eval_worker(task) -> dict:
+    """One episode in a pool worker. The worker builds the agent and env once per
+    evaluation (``token``) and keeps them for that evaluation's next episodes."""
+    token, agent_cls, policy_state, env_id, seed, max_steps = task
+    if not _WORKER_ROLLOUT or _WORKER_ROLLOUT[0] != token:
+        torch.set_num_threads(1)
+        if _WORKER_ROLLOUT:
+            _WORKER_ROLLOUT[2].close()
+        _WORKER_ROLLOUT[:] = [token, *_eval_rollout(agent_cls, policy_state, env_id, max_steps)]
+    return _eval_episode(_WORKER_ROLLOUT[1], seed)
 
 
 def summarize_eval(rows: list[dict]) -> dict:
@@ -204,26 +218,45 @@ def time_to_threshold(rates: list[float], steps: list[int], threshold: float = 0
 
 
 class Evaluator:
-    """Parallel frozen-policy evaluation in spawned worker processes."""
+    """Frozen-policy evaluation, in spawned worker processes when ``workers`` > 1, with a
+    progress bar over the episodes (rate and ETA) when ``progress``. Each episode depends
+    only on its seed, so the rows do not depend on the number of workers or on which worker
+    ran which episode."""
 
     def __init__(self, env_id: str, episodes: int, workers: int, max_steps: int,
-                 seed_set: str = "dev"):
+                 seed_set: str = "dev", progress: bool = False):
         self.env_id, self.episodes, self.max_steps = env_id, episodes, max_steps
+        self.seed_set, self.progress = seed_set, progress
         self.seeds = eval_seeds(seed_set, episodes)
         self.workers = max(1, min(workers, episodes))
         self.pool = None
 
     def __call__(self, agent_cls: type, policy_state: dict) -> list[dict]:
         """Rows of the M evaluation rollouts of ``agent_cls.from_policy_state_dict(policy_state)``."""
-        groups = [self.seeds[j::self.workers] for j in range(self.workers)]
-        tasks = [(agent_cls, policy_state, self.env_id, g, self.max_steps) for g in groups if g]
-        if self.workers == 1:
-            out = [_eval_worker(t) for t in tasks]
-        else:
-            if self.pool is None:
-                self.pool = mp.get_context("spawn").Pool(self.workers)
-            out = self.pool.map(_eval_worker, tasks)
-        return sorted((r for rows in out for r in rows), key=lambda r: r["seed"])
+        from tqdm import tqdm
+
+        rows = []
+        with tqdm(total=len(self.seeds), desc=f"evaluate ({self.seed_set} seeds)", unit="ep",
+                  disable=not self.progress, leave=False) as bar:
+            if self.workers == 1:
+                rollout, env = _eval_rollout(agent_cls, policy_state, self.env_id,
+                                             self.max_steps)
+                try:
+                    for seed in self.seeds:
+                        rows.append(_eval_episode(rollout, seed))
+                        bar.update(1)
+                finally:
+                    env.close()
+            else:
+                if self.pool is None:
+                    self.pool = mp.get_context("spawn").Pool(self.workers)
+                token = os.urandom(8).hex()
+                tasks = [(token, agent_cls, policy_state, self.env_id, seed, self.max_steps)
+                         for seed in self.seeds]
+                for row in self.pool.imap_unordered(_eval_worker, tasks):
+                    rows.append(row)
+                    bar.update(1)
+        return sorted(rows, key=lambda r: r["seed"])
 
     def close(self) -> None:
         if self.pool is not None:
@@ -504,7 +537,7 @@ class Run:
         p = self.profile
         self._tb = self._tensorboard()
         self._evaluator = Evaluator(self.env_id, p.eval_episodes, p.eval_workers,
-                                    p.max_episode_steps)
+                                    p.max_episode_steps, progress=self.progress)
         try:
             if self.c["stage"] == "offline":
                 self._stage_i_cached()
@@ -806,7 +839,8 @@ class Run:
                     **out, **{k: last[k] for k in FINAL_EVAL_KEYS if k in last}}
         r = evaluate_policy_file(path, self.final_episodes, self.profile.eval_workers,
                                  seed_set=self.final_seed_set,
-                                 max_steps=self.profile.max_episode_steps)
+                                 max_steps=self.profile.max_episode_steps,
+                                 progress=self.progress)
         return {"seeds": r["eval_seeds"], **out,
                 **{k: r[k] for k in (*FINAL_EVAL_KEYS, "seed_set")}}
 
@@ -874,12 +908,12 @@ def load_policy_file(path: str | os.PathLike) -> tuple[type, dict, dict]:
 
 def evaluate_policy_file(path: str | os.PathLike, episodes: int, workers: int = 2,
                          env_id: str | None = None, seed_set: str = "dev",
-                         max_steps: int = 600) -> dict:
+                         max_steps: int = 600, progress: bool = False) -> dict:
     """``bench eval``: evaluate a frozen policy file from ``policies/`` (interventions off),
     after :func:`load_policy_file` checked it."""
     agent_cls, policy, meta = load_policy_file(path)
     env_id = env_id or meta["env_id"]
-    ev = Evaluator(env_id, episodes, workers, max_steps, seed_set)
+    ev = Evaluator(env_id, episodes, workers, max_steps, seed_set, progress)
     try:
         rows = ev(agent_cls, policy)
     finally:
