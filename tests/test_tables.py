@@ -209,3 +209,18 @@ def test_committed_readme_headline_equals_bench_tables():
 
     block = (REPO / "README.md").read_text().split(HEADLINE_START)[1].split(HEADLINE_END)[0]
     assert block.strip() == headline(load_runs(REPO / "leaderboard" / "runs"), load_paper())
+
+
+def test_committed_leaderboard_equals_bench_leaderboard(tmp_path, monkeypatch):
+    """leaderboard/README.md and the docs' leaderboard table are what bench leaderboard makes
+    of leaderboard/runs (rebuild them when a cell is committed)."""
+    from window_bench.harness.leaderboard import build as build_leaderboard
+
+    monkeypatch.chdir(REPO)
+    build_leaderboard("leaderboard/runs", readme=tmp_path / "README.md",
+                      snippet=tmp_path / "leaderboard.md")
+    assert (REPO / "leaderboard" / "README.md").read_bytes() == \
+        (tmp_path / "README.md").read_bytes(), "leaderboard/README.md: run bench leaderboard"
+    assert (REPO / "docs" / "snippets" / "leaderboard.md").read_bytes() == \
+        (tmp_path / "leaderboard.md").read_bytes(), \
+        "docs/snippets/leaderboard.md: run bench leaderboard"
