@@ -296,13 +296,29 @@ def final_policy(run_dir: Path) -> Path:
     return run_dir / rel
 
 
+def _progress_detail(cell: Cell, counters: dict) -> str:
+    """How far a partial run is, from the counters of its last saved state."""
+    stage = counters.get("stage")
+    if stage == "offline":
+        where = f"Stage I, {counters.get('offline_done', 0):,} updates"
+    elif stage in ("warm", "online"):
+        m, prof = get_method(cell.method), get_profile(cell.profile)
+        budget = prof.budget_steps if m.online_updates else prof.warm_steps
+        where = (f"Stage {'II' if stage == 'warm' else 'III'}, "
+                 f"{counters.get('env_steps', 0):,}/{budget:,} env steps, "
+                 f"{len(counters.get('episodes') or ())} episodes")
+    else:
+        where = {"evaluate0": "Stage I done, checkpoint-0 evaluation",
+                 "done": "training done, final evaluation"}.get(stage, f"stage {stage}")
+    return f"{where}, {(counters.get('wall_clock_s') or 0) / 60:.0f} min so far"
+
+
 def cell_report(cell: Cell, grid: Grid, out: Path) -> dict:
-    """Where one cell stands, read from its files alone (nothing is started, locked or
-    imported beyond the standard library): ``status`` as :func:`cell_status`, with
-    ``running`` for a partial or new cell whose run directory another process holds, and
-    ``failed`` for a cell whose last sweep attempt ended with an error and left no state;
-    ``detail`` says how far it is (a finished cell's final success, a partial one's stage and
-    counters, as its last saved state records them)."""
+    """Where one cell stands, read from its files alone (nothing is started or locked):
+    ``status`` as :func:`cell_status`, with ``running`` for a partial or new cell whose run
+    directory another process holds, and ``failed`` for a cell whose last sweep attempt ended
+    with an error and left no state; ``detail`` says how far it is (a finished cell's final
+    success, a partial one's stage and counters, as its last saved state records them)."""
     from window_bench.harness.files import lock_holder, state_counters
 
     status = cell_status(cell, grid, out)
@@ -319,30 +335,15 @@ def cell_report(cell: Cell, grid: Grid, out: Path) -> dict:
         status, detail = "conflict", status.removeprefix("conflict: ")
     else:
         if cell.on is None:
-            holder = lock_holder(p)
+            holder = lock_holder(p)     # "pid N: <command> (since <time>)", as RunDir writes it
             if holder is not None:
                 status = "running"
                 pid = holder.split(":", 1)[0]
                 since = holder.rsplit("(since ", 1)[-1].rstrip(")") if "(since " in holder else ""
                 detail = f"{pid}, since {since}; " if since else f"{pid}; "
-            c = state_counters(p / "state.safetensors")
-            if c is not None:
-                stage = c.get("stage")
-                if stage == "offline":
-                    detail += f"Stage I, {c.get('offline_done', 0):,} updates"
-                elif stage in ("warm", "online"):
-                    m, prof = get_method(cell.method), get_profile(cell.profile)
-                    budget = prof.budget_steps if m.online_updates else prof.warm_steps
-                    detail += (f"Stage {'II' if stage == 'warm' else 'III'}, "
-                               f"{c.get('env_steps', 0):,}/{budget:,} env steps, "
-                               f"{len(c.get('episodes') or ())} episodes")
-                elif stage == "evaluate0":
-                    detail += "Stage I done, checkpoint-0 evaluation"
-                elif stage == "done":
-                    detail += "training done, final evaluation"
-                else:
-                    detail += f"stage {stage}"
-                detail += f", {(c.get('wall_clock_s') or 0) / 60:.0f} min so far"
+            counters = state_counters(p / "state.safetensors")
+            if counters is not None:
+                detail += _progress_detail(cell, counters)
         last = _read_json(out / LOGS / f"{cell.name}.json") or {}
         if status == "new" and last.get("status") == "failed":
             status = "failed"
