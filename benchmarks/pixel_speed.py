@@ -6,7 +6,9 @@ over repeats are reported, and each ratio is taken within a repeat.
 (a) env steps/s (only ``env.step`` timed, resets excluded, the same seeded random actions
     for every row): the state track (``obs_mode="flat"``), rendering alone
     (``obs_mode="pixels"``: wrist + side 128 x 128 views), and the pixel track
-    (``PixelFeatures``: rendering + the frozen ResNet-10 on both views).
+    (``PixelFeatures``: rendering + the frozen ResNet-10 on both views), and the pixel track
+    observed on a chunked policy's grid (``PixelFeatures(observe_every=h)``: what the
+    harness runs for an h-step policy; views rendered and encoded on every h-th step only).
 (b) gradient updates/s at the same network sizes, each including the batch draw from a
     ``ChunkReplay`` (which copies the cached features): ``QCFQLAgent`` on the 52-float state
     and ``PixelQCFQL`` on the 16,402-value pixel observation.
@@ -132,7 +134,10 @@ def main(argv=None) -> int:
     envs = {"state (flat)": gym.make(args.env, obs_mode="flat"),
             "rendering alone (pixels)": gym.make(args.env, obs_mode="pixels"),
             "pixel track (render + ResNet-10)":
-                PixelFeatures(gym.make(args.env, obs_mode="pixels"), backbone)}
+                PixelFeatures(gym.make(args.env, obs_mode="pixels"), backbone),
+            f"pixel track, observed on the h = {args.h} grid":
+                PixelFeatures(gym.make(args.env, obs_mode="pixels"), backbone,
+                              observe_every=args.h)}
     cfg = QCFQLConfig(h=args.h, hidden=tuple(args.hidden), batch_size=args.batch)
     agents = {"state": (QCFQLAgent(STATE_DIM, 7, cfg, seed=0),
                         synthetic_replay(STATE_DIM, args.h, 8, 100, 0, False)),
@@ -157,6 +162,8 @@ def main(argv=None) -> int:
         "env_steps_per_s": {k: med(env_rows, k) for k in names},
         "env_ratio_pixel_vs_state": ratio(env_rows, names[2], names[0]),
         "env_ratio_pixel_vs_rendering": ratio(env_rows, names[2], names[1]),
+        "env_ratio_grid_vs_every_step": ratio(env_rows, names[3], names[2]),
+        "env_ratio_grid_vs_state": ratio(env_rows, names[3], names[0]),
         "updates_per_s": {k: med(upd_rows, k) for k in agents},
         "update_cost_pixel_vs_state": ratio(upd_rows, "state", "pixels"),
         "bytes_per_chunk": {k: bytes_per_chunk(rb) for k, (_, rb) in agents.items()},
@@ -176,6 +183,9 @@ def main(argv=None) -> int:
         print(f"| {k} | {result['env_steps_per_s'][k]:.1f} |")
     print(f"pixel track / state track: {result['env_ratio_pixel_vs_state']:.3f}; "
           f"pixel track / rendering alone: {result['env_ratio_pixel_vs_rendering']:.3f}")
+    print(f"observed on the h = {args.h} grid / every step: "
+          f"{result['env_ratio_grid_vs_every_step']:.2f}x; / state track: "
+          f"{result['env_ratio_grid_vs_state']:.3f}")
     print("| learner | updates/s |\n|---|---|")
     for k in agents:
         print(f"| {k} | {result['updates_per_s'][k]:.2f} |")

@@ -837,3 +837,106 @@ def test_pixel_run_resumes_after_a_kill_as_if_never_killed(tmp_path, monkeypatch
     for key in ("agent", "demo_rb", "online_rb"):
         _assert_same(a[key], b[key], key)
 
+    # The harness observes the pixel track on the policy's chunk grid (h = 10 here): the same
+    # run observing every step (training env and evaluation) is the same run, bit for bit,
+    # with fewer renders and encoder passes.
+    from window_bench.pixels import features
+
+    real_init = features.PixelFeatures.__init__
+
+    def every_step(self, env, backbone, observe_every=1):
+        assert observe_every == 10              # what the harness asks for, h of `qcfql`
+        real_init(self, env, backbone, observe_every=1)
+
+    monkeypatch.setattr(features.PixelFeatures, "__init__", every_step)
+    eager = run(tmp_path / "eager").train()
+    assert drop(eager["checkpoints"]) == drop(whole["checkpoints"])
+    assert eager["train_episodes"] == whole["train_episodes"]
+    c, _ = load_state(tmp_path / "eager" / "state.safetensors", "state")
+    for key in ("agent", "demo_rb", "online_rb"):
+        _assert_same(a[key], c[key], key)
+
+
+class _ObsPolicy:
+    """A deterministic chunked policy whose actions depend on the whole observation (feature
+    maps and proprioception), so an observation that differed would change the episode."""
+
+    def __init__(self, h: int):
+        self.h = h
+        self.w = np.random.default_rng(0).standard_normal((OBS_DIM, 6)).astype(np.float32)
+
+    def act(self, obs):
+        a = np.tanh(obs @ self.w / 300.0)
+        chunk = np.repeat(np.concatenate([0.3 * a, [1.0]])[None].astype(np.float32), self.h, 0)
+        return chunk
+
+
+def test_observing_on_the_chunk_grid_changes_nothing_but_the_work(backbone, monkeypatch):
+    """``PixelFeatures(observe_every=h)``: the same episode as observing every step (actions,
+    rewards, the observations on the grid and the last one), the rows in between all NaN,
+    and only grid steps rendered; a policy or a chunking on another grid is refused."""
+    from window_bench.data.chunks import chunk_transitions
+    from window_bench.envs.env import WindowInstallEnv
+    from window_bench.installer.rollout import Rollout
+
+    h, T = 3, 8                                  # truncated at 8: s_T off the grid
+    renders, real = [], WindowInstallEnv._render_views
+
+    def counted(self):
+        renders.append(1)
+        return real(self)
+
+    monkeypatch.setattr(WindowInstallEnv, "_render_views", counted)
+    logs = {}
+    for every in (1, h):
+        renders.clear()
+        env = make_pixel_env(ENV, backbone, observe_every=every, max_episode_steps=T)
+        logs[every] = Rollout(env, _ObsPolicy(h)).run(seed=3)
+        logs[every, "renders"] = len(renders)
+        env.close()
+    eager, lazy = logs[1], logs[h]
+    assert eager.T == lazy.T == T and eager.observed.all()
+    np.testing.assert_array_equal(eager.actions, lazy.actions)
+    np.testing.assert_array_equal(eager.rewards, lazy.rewards)
+    grid = (np.arange(T + 1) % h == 0) | (np.arange(T + 1) == T)
+    np.testing.assert_array_equal(lazy.observed, grid)
+    np.testing.assert_array_equal(lazy.observations[grid], eager.observations[grid])
+    assert np.isnan(lazy.observations[~grid]).all()
+    assert (logs[1, "renders"], logs[h, "renders"]) == (T + 1, int(grid.sum()))   # 9 vs 5
+    a, b = chunk_transitions(eager, h, 0.99), chunk_transitions(lazy, h, 0.99)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    # Chunks on another grid would read unobserved rows; a policy off the grid would act on one.
+    with pytest.raises(ValueError, match="s_2 was not observed"):
+        chunk_transitions(lazy, 2, 0.99)
+    env = make_pixel_env(ENV, backbone, observe_every=h, max_episode_steps=T)
+    with pytest.raises(RuntimeError, match="unobserved step"):
+        Rollout(env, _ObsPolicy(1)).run(seed=3)
+    env.close()
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="observe_every"):
+            make_pixel_env(ENV, backbone, observe_every=bad)
+
+
+def test_episode_log_marks_unobserved_rows_and_still_refuses_corrupt_ones():
+    from window_bench.data.steplog import EpisodeLog
+
+    def log(obs):
+        return EpisodeLog(observations=obs, actions=np.zeros((3, 7)), rewards=np.zeros(3),
+                          terminated=[False, False, True], truncated=[False] * 3,
+                          provenance=["policy"] * 3, takeover_kind=[""] * 3)
+
+    obs = np.ones((4, 5), np.float32)
+    obs[1] = np.nan
+    log(obs).validate()                                   # an all-NaN row: unobserved
+    np.testing.assert_array_equal(log(obs).observed, [True, False, True, True])
+    part = obs.copy()
+    part[2, 0] = np.nan                                   # one NaN in an observed row
+    with pytest.raises(ValueError, match="non-finite value nan at index \\(2, 0\\)"):
+        log(part).validate()
+    for end in (0, 3):
+        cut = obs.copy()
+        cut[end] = np.nan
+        with pytest.raises(ValueError, match="s_0 and s_T must be observed"):
+            log(cut).validate()
+

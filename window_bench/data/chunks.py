@@ -71,6 +71,13 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
     obs = np.asarray(episode.observations, dtype=np.float32)
     K = -(-T // h)  # ceil(T / h) >= 1 since T >= 1
     starts = np.arange(K, dtype=np.int64) * h
+    needed = np.concatenate([starts, np.minimum(starts + h, T)])
+    observed = episode.observed
+    if not observed[needed].all():
+        t = int(needed[~observed[needed]][0])
+        raise ValueError(f"chunk_transitions(h={h}): s_{t} was not observed (an all-NaN row); "
+                         f"the chunk grid needs every s_kh and s_T. Observe on this grid "
+                         f"(PixelFeatures(observe_every=h) with the same h) or every step")
     steps = starts[:, None] + np.arange(h, dtype=np.int64)[None, :]  # (K, h)
     mask = steps < T
     idx = np.minimum(steps, T - 1)  # safe gather index; padded entries are overwritten

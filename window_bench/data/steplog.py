@@ -10,7 +10,9 @@ step index. :class:`EpisodeLog` holds one complete episode in that form; chunked
 Conventions:
 
 * ``observations`` has ``T + 1`` rows ``s_0 .. s_T`` (flat vectors); every other per-step
-  field has ``T`` rows, step ``t`` covering the transition ``s_t -> s_{t+1}``.
+  field has ``T`` rows, step ``t`` covering the transition ``s_t -> s_{t+1}``. A row that is
+  all NaN is a step the env did not observe (:attr:`EpisodeLog.observed`; the pixel track
+  observing on a chunked policy's grid); ``s_0`` and ``s_T`` are always observed.
 * An episode log is complete: exactly one of ``terminated`` / ``truncated`` is set, and only
   on the last step ``T - 1``. ``terminated`` means the MDP ended (seating accepted; no
   bootstrap); ``truncated`` means the time limit cut it (bootstrap from ``s_T``).
@@ -106,6 +108,16 @@ class EpisodeLog:
         return int(np.asarray(self.rewards).shape[0])
 
     @property
+    def observed(self) -> np.ndarray:
+        """(T+1,) bool: False for a row the env did not observe (all NaN; the pixel track's
+        ``PixelFeatures(observe_every=h)`` skips the steps between a chunked policy's grid
+        points). Everything else about the step (action, reward, flags) is logged."""
+        obs = np.asarray(self.observations)
+        if obs.ndim != 2 or obs.shape[1] == 0:
+            return np.ones(len(obs), bool)
+        return ~np.isnan(obs).all(axis=1)
+
+    @property
     def step_index(self) -> np.ndarray:
         """``np.arange(T)``: the 10 Hz step index of each transition."""
         return np.arange(self.T)
@@ -155,6 +167,12 @@ class EpisodeLog:
             if not np.issubdtype(arr.dtype, np.floating):
                 raise ValueError(f"EpisodeLog.{name}: expected a float array, got {arr.dtype}")
             bad = ~np.isfinite(arr)
+            if name == "observations":
+                observed = self.observed
+                if not (observed[0] and observed[-1]):
+                    raise ValueError("EpisodeLog.observations: s_0 and s_T must be observed "
+                                     "(an all-NaN row marks an unobserved step)")
+                bad &= observed[:, None]
             if bad.any():
                 where = np.argwhere(bad)[0]
                 raise ValueError(f"EpisodeLog.{name}: non-finite value {arr[tuple(where)]} "

@@ -172,6 +172,9 @@ class WindowInstallEnv(gym.Env):
         self.osc = OSC(self.model, sc.tcp_site, sc.tool_body, OSCGains(), q_null=self.q_null)
         self._renderer = None
         self._render_renderer = None
+        # Set only by PixelFeatures(observe_every > 1) around a step whose observation no one
+        # reads: the views are not rendered (blank) and the physics is untouched.
+        self._skip_views = False
         self._lining_mask = np.zeros(self.model.ngeom, bool)
         self._lining_mask[np.concatenate([sc.buck_geoms, sc.stop_geoms, sc.wall_geoms])] = True
 
@@ -526,7 +529,7 @@ class WindowInstallEnv(gym.Env):
         vac = np.array([1.0 if self._latched else 0.0])
         proprio = np.concatenate([q, qd, eef, vac])
         if self.obs_mode == "pixels":
-            wrist, side = self._render_views()
+            wrist, side = self._blank_views() if self._skip_views else self._render_views()
             return {"wrist_rgb": wrist, "side_rgb": side, "robot0_proprio": proprio.astype(np.float32)}
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, d.site_xmat[sc.tcp_site])
@@ -555,6 +558,10 @@ class WindowInstallEnv(gym.Env):
             self._renderer.update_scene(self.data, camera=cam)
             out.append(self._renderer.render().copy())
         return out
+
+    def _blank_views(self):
+        blank = np.zeros((self.image_size, self.image_size, 3), np.uint8)
+        return blank, blank
 
     def render(self):
         if self.render_mode != "rgb_array":

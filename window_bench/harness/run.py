@@ -133,8 +133,10 @@ def _eval_rollout(agent_cls: type, policy_state: dict, env_id: str, max_steps: i
 
     agent = agent_cls.from_policy_state_dict(policy_state)
     # The policy's observation track: a pixel agent names its encoder weights in its state.
+    # Pixels are rendered and encoded only where the policy reads them (its chunk grid).
     env = make_track_env(env_id, getattr(agent_cls, "track", "state"),
-                         weights=policy_state.get("encoder_weights"), max_episode_steps=max_steps)
+                         weights=policy_state.get("encoder_weights"), max_episode_steps=max_steps,
+                         observe_every=int(agent.h))
     return Rollout(env, AgentPolicy(agent, deterministic=True), env_id=env_id), env
 
 
@@ -675,7 +677,9 @@ class Run:
         if self.track == "pixels":
             from window_bench.pixels.features import PixelFeatures
 
-            env = PixelFeatures(env, self.backbone)
+            # Rendered and encoded only on the chunk grid: the replay's chunked transitions
+            # and the policy read nothing else (h = 1 learners: every step).
+            env = PixelFeatures(env, self.backbone, observe_every=int(self.agent.h))
         policy = AgentPolicy(self.agent, deterministic=False)
         budget = p.warm_steps if not m.online_updates else p.budget_steps
         sup = InstallerSupervisor(self.operator) if m.interventions else None

@@ -78,6 +78,10 @@ class Rollout:
         return np.asarray(obs, dtype=np.float32)
 
     def _propose(self) -> None:
+        if self._obs[-1].size and np.isnan(self._obs[-1]).all():
+            raise RuntimeError(f"step {self.t}: the policy would act on an unobserved step (the "
+                               f"env observes every {getattr(self.env, 'observe_every', '?')} "
+                               f"steps; this rollout's chunk grid is h = {self.h})")
         chunk = np.asarray(self.policy.act(self.obs), dtype=np.float32)
         if chunk.shape == (ACTION_DIM,):
             chunk = chunk[None]

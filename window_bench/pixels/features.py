@@ -11,6 +11,18 @@ Observation: ``Box((OBS_DIM,), float32)`` = wrist feature map (512 x 4 x 4), sid
 proprioception (q, q-dot, end-effector position, vacuum). The feature maps are rounded to
 float16 before they are widened to float32, so a store that keeps them as float16 (32 KiB
 per observation) loses nothing, and cached features are bit-identical to recomputed ones.
+
+**Observing on the chunk grid** (``observe_every=h``). A chunked policy reads the
+observation only where it proposes a chunk, on the fixed grid ``t = k*h``, and the chunked
+transitions of the replay (Eq. 4) only store ``s_kh`` and the episode's last state. With
+``observe_every=h`` the wrapper renders and encodes exactly those: the reset observation,
+every step ``t`` with ``t % h == 0`` (counted from the reset) and the step that ends the
+episode (terminated or truncated). Any other step returns :data:`UNOBSERVED`-filled vectors
+(all NaN, so a consumer that reads one fails loudly instead of learning from it;
+``EpisodeLog`` accepts such rows and ``chunk_transitions`` refuses to use one). Rendering
+never touches the physics, so the episode, every observation on the grid, every action and
+reward are bit-identical to ``observe_every=1`` (tested); only the work differs. The default,
+1, observes every step, as step-wise learners (h = 1) need.
 """
 
 from __future__ import annotations
@@ -21,6 +33,9 @@ import torch
 from gymnasium import spaces
 
 from window_bench.pixels.encoder import OBS_DIM, VIEWS, ResNet10
+
+#: The value of every entry of an observation the wrapper skipped (``observe_every > 1``).
+UNOBSERVED = np.float32(np.nan)
 
 
 @torch.inference_mode()
@@ -36,9 +51,14 @@ class PixelFeatures(gym.ObservationWrapper):
     """Wraps an env made with ``obs_mode="pixels"``; see the module docstring.
 
     ``backbone``: a frozen :class:`ResNet10` (:func:`window_bench.pixels.weights.resolve_backbone`).
+    ``observe_every``: observe only on the grid of a chunked policy (module docstring).
     """
 
-    def __init__(self, env: gym.Env, backbone: ResNet10):
+    def __init__(self, env: gym.Env, backbone: ResNet10, observe_every: int = 1):
+        if (isinstance(observe_every, bool) or not isinstance(observe_every, (int, np.integer))
+                or observe_every < 1):
+            raise ValueError(f"observe_every={observe_every!r}; allowed: an integer >= 1 "
+                             "(1: every step; h: the chunk grid of a policy with horizon h)")
         super().__init__(env)
         space = env.observation_space
         if not isinstance(space, spaces.Dict) or set(space.spaces) != {*VIEWS, "robot0_proprio"}:
@@ -52,13 +72,36 @@ class PixelFeatures(gym.ObservationWrapper):
             raise ValueError("PixelFeatures: the backbone must be frozen "
                              "(window_bench.pixels.encoder.frozen)")
         self.backbone = backbone
+        self.observe_every = int(observe_every)
         self.observation_space = spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float32)
+        self._t = 0
 
     def observation(self, observation: dict) -> np.ndarray:
         return encode_views(self.backbone, observation)
 
+    def reset(self, *, seed=None, options=None):
+        self._t = 0
+        return super().reset(seed=seed, options=options)
 
-def make_pixel_env(env_id: str, backbone: ResNet10, **kwargs) -> PixelFeatures:
+    def step(self, action):
+        self._t += 1
+        skip = self._t % self.observe_every != 0
+        base = self.env.unwrapped
+        base._skip_views = skip
+        try:
+            obs, reward, terminated, truncated, info = self.env.step(action)
+        finally:
+            base._skip_views = False
+        if not skip:
+            return self.observation(obs), reward, terminated, truncated, info
+        if terminated or truncated:     # the episode's last state s_T: always observed
+            return self.observation(base._observation()), reward, terminated, truncated, info
+        return np.full(OBS_DIM, UNOBSERVED), reward, terminated, truncated, info
+
+
+def make_pixel_env(env_id: str, backbone: ResNet10, observe_every: int = 1,
+                   **kwargs) -> PixelFeatures:
     """``gym.make(env_id, obs_mode="pixels", **kwargs)`` wrapped in :class:`PixelFeatures`:
     the pixel track's counterpart of the harness's ``obs_mode="flat"`` env."""
-    return PixelFeatures(gym.make(env_id, obs_mode="pixels", **kwargs), backbone)
+    return PixelFeatures(gym.make(env_id, obs_mode="pixels", **kwargs), backbone,
+                         observe_every=observe_every)

@@ -40,10 +40,13 @@ def track_agent_kind(kind: str, track: str) -> str:
 
 
 def make_track_env(env_id: str, track: str, backbone=None, *, weights=None,
-                   **kwargs) -> gym.Env:
+                   observe_every: int = 1, **kwargs) -> gym.Env:
     """``gym.make(env_id, obs_mode="flat", **kwargs)`` for ``state``; the env wrapped in
     :class:`PixelFeatures` for ``pixels``, with ``backbone`` or else the one
-    ``resolve_backbone(weights)`` gives (``None``: the shipped default)."""
+    ``resolve_backbone(weights)`` gives (``None``: the shipped default). ``observe_every``
+    (pixels): render and encode only on the chunk grid of a policy with that horizon
+    (:class:`PixelFeatures`); the state track's observation costs nothing to make and is
+    made every step whatever it says."""
     if check_track(track) == "state":
         return gym.make(env_id, obs_mode="flat", **kwargs)
     from window_bench.pixels.features import make_pixel_env
@@ -53,7 +56,7 @@ def make_track_env(env_id: str, track: str, backbone=None, *, weights=None,
 
         backbone, _ = resolve_backbone(weights)
 
-    return make_pixel_env(env_id, backbone, **kwargs)
+    return make_pixel_env(env_id, backbone, observe_every=observe_every, **kwargs)
 
 
 def privileged_state(env) -> np.ndarray:
