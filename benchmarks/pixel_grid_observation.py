@@ -46,7 +46,10 @@ def main(argv=None) -> int:
     if args.episodes < 1:
         ap.error(f"--episodes must be >= 1, got {args.episodes}")
     torch.set_num_threads(1)
-    agent_cls, state, meta = load_policy_file(args.policy)
+    try:
+        agent_cls, state, meta = load_policy_file(args.policy)
+    except ValueError as e:          # RunFileError included: missing, cut, a pickle
+        ap.error(str(e))
     if getattr(agent_cls, "track", "state") != "pixels":
         ap.error(f"{args.policy}: a {meta['method']} policy of the state track; this compares "
                  "ways of observing the pixel track")
