@@ -57,14 +57,15 @@ def main() -> int:
     files = [str(f) for f in finished_files(root)]
     if not files:
         return 0
-    changed = git("status", "--porcelain", "--ignored", "--", *files).stdout.split("\n")
-    paths = sorted({line[3:] for line in changed if line.strip()})
-    if not paths:
-        return 0
-    p = git("add", "-f", "--", *paths)
+    # Add exactly these files. (`git status --ignored` names an ignored directory, not its
+    # files: adding what it printed committed every intermediate policy of policies/.)
+    p = git("add", "-f", "--", *files)
     if p.returncode:
         print(p.stderr, file=sys.stderr)
         return 1
+    paths = git("diff", "--cached", "--name-only", "--", *files).stdout.split()
+    if not paths:
+        return 0
     n = len(root.parts)
     cells = sorted({"/".join(Path(x).parts[n:n + 2]).removesuffix(".json") for x in paths
                     if "sweep-logs" not in x})
