@@ -54,6 +54,10 @@ def git(*args: str) -> subprocess.CompletedProcess:
 
 def main() -> int:
     root = Path(sys.argv[1] if len(sys.argv) > 1 else "leaderboard/runs")
+    if not root.is_dir():
+        print(f"error: sweep root {root} is not a directory (default leaderboard/runs, "
+              "relative to the repository root)", file=sys.stderr)
+        return 2
     files = [str(f) for f in finished_files(root)]
     if not files:
         return 0

@@ -71,3 +71,10 @@ def test_only_the_final_policy_and_the_raw_files_are_committed(tmp_path):
     assert run().returncode == 0
     assert _git(tmp_path, "show", "--name-only", "--format=", "HEAD").split() == [
         cell + "checkpoints.csv"]
+
+
+def test_a_missing_sweep_root_is_a_one_line_error(tmp_path):
+    p = subprocess.run([sys.executable, str(SCRIPT), str(tmp_path / "nowhere")], cwd=tmp_path,
+                       capture_output=True, text=True)
+    assert p.returncode == 2
+    assert p.stderr.count("\n") == 1 and "nowhere is not a directory" in p.stderr
