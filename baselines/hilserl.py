@@ -25,7 +25,8 @@ entropy ``-|A|/2``, critic-to-actor ratio 2; the actor and the critics cover the
 dimensions and a separate grasp critic (a DQN head over the vacuum commands {release, hold},
 double-DQN target, Polyak target network, trained with every critic step) chooses the
 vacuum by argmax. ``vacuum_head="gaussian"`` keeps the vacuum as a 7th Gaussian dimension
-(the earlier form of this baseline). Normalised observations are clipped to +-10 (QC-FQL). RLPD's variant (10 critics, target = min over 2 members
+(the earlier form of this baseline); ``vacuum_head="held"`` is HIL-SERL's fixed-gripper
+setup for tasks that start grasped (every action commands "hold"). Normalised observations are clipped to +-10 (QC-FQL). RLPD's variant (10 critics, target = min over 2 members
 drawn without replacement, ReLU, entropy backup, temperature 1.0) is a configuration:
 :data:`RLPD_CONFIG`. Deviations from HIL-SERL, all disclosed in ``docs/baselines.md``: the
 discount is 0.99 (HIL-SERL's examples use 0.97), the log-std is clipped to [-20, 2] (RLPD;
@@ -68,7 +69,7 @@ _ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
 BATCH_KEYS = ("obs", "actions", "reward", "next_obs", "discount", "terminal")
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 #: How the last action dimension (the vacuum) is learnt; see :class:`HILSERLConfig`.
-VACUUM_HEADS = ("discrete", "gaussian")
+VACUUM_HEADS = ("discrete", "gaussian", "held")
 #: The discrete head's commands (index -> executed value): release, hold. The environment
 #: engages the vacuum iff the value exceeds ``VACUUM_THRESHOLD``; a stored action maps back
 #: to the command index by the same threshold.
@@ -129,14 +130,19 @@ class HILSERLConfig:
     obs_clip : float or None
         Normalised observations are clipped to ``+-obs_clip`` (QC-FQL's 10): a state never
         seen in the demonstrations cannot drive the networks arbitrarily far. None: no clip.
-    vacuum_head : {"discrete", "gaussian"}
+    vacuum_head : {"discrete", "gaussian", "held"}
         How the vacuum command (the last action dimension) is learnt. ``"discrete"``
         (HIL-SERL's ``SACAgentHybridSingleArm``): the tanh-Gaussian actor and the critic
         ensemble cover the pose dimensions only, and a separate grasp critic ``Q_g(s, .)``
         over the vacuum commands {release, hold} is trained by double DQN and acts by argmax.
         ``"gaussian"``: the vacuum is one more dimension of the tanh-Gaussian, engaged iff it
         exceeds :data:`VACUUM_THRESHOLD` (this baseline before the grasp critic; plain SAC
-        for tasks without a vacuum).
+        for tasks without a vacuum). ``"held"`` (HIL-SERL's ``single-arm-fixed-gripper``
+        setup, its ``GripperCloseEnv``, for insertion tasks that start with the part
+        grasped): nothing learns the vacuum; the actor and the critic ensemble cover the
+        pose dimensions and every action commands "hold". For setting A, whose panel starts
+        held and is accepted while held; in B it would engage the cup wherever it comes
+        within reach.
     vacuum_epsilon : float
         Probability of a uniformly drawn vacuum command when acting stochastically
         (``act(..., deterministic=False)``); HIL-SERL's agent explores the gripper only
@@ -513,16 +519,19 @@ class HILSERLAgent(Agent):
         self.obs_mean, self.obs_std = self._check_stats(obs_mean, obs_std)
 
         self.discrete_vacuum = config.vacuum_head == "discrete"
+        self.held_vacuum = config.vacuum_head == "held"
         if config.suction_loss_terminal and obs_dim != FLAT_OBS_DIM:
             raise ValueError(f"suction_loss_terminal = true needs the flat state observation "
                              f"(obs_dim {FLAT_OBS_DIM}, vacuum flag at index "
                              f"{VACUUM_OBS_INDEX}); this agent has obs_dim = {obs_dim}")
-        if self.discrete_vacuum and action_dim < 2:
+        if (self.discrete_vacuum or self.held_vacuum) and action_dim < 2:
             raise ValueError(f"action_dim = {action_dim} is not allowed with vacuum_head = "
-                             f"'discrete': it needs at least one pose dimension and the vacuum")
-        # With the grasp critic, the actor and the critic ensemble see the pose dimensions
-        # only (HIL-SERL's critic takes actions[..., :-1]).
-        self.pose_dim = action_dim - 1 if self.discrete_vacuum else action_dim
+                             f"{config.vacuum_head!r}: it needs at least one pose dimension "
+                             f"and the vacuum")
+        # With the grasp critic or a held vacuum, the actor and the critic ensemble see the
+        # pose dimensions only (HIL-SERL's critic takes actions[..., :-1]).
+        self.pose_dim = (action_dim - 1 if self.discrete_vacuum or self.held_vacuum
+                         else action_dim)
 
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
@@ -582,7 +591,8 @@ class HILSERLAgent(Agent):
         a batch (B, obs_dim). ``deterministic`` returns ``tanh(mean)``; otherwise a sample
         drawn with the agent's acting generator. float32, in [-1, 1]. With the discrete
         vacuum head the last entry is the :data:`VACUUM_COMMANDS` value of
-        :meth:`vacuum_command` (argmax of the grasp critic; epsilon-greedy when sampling)."""
+        :meth:`vacuum_command` (argmax of the grasp critic; epsilon-greedy when sampling);
+        with the held vacuum it is always "hold"."""
         x = np.ascontiguousarray(obs, dtype=np.float32)
         if x.ndim not in (1, 2) or x.shape[-1] != self.obs_dim:
             raise ValueError(f"obs has shape {x.shape}; expected ({self.obs_dim},) or "
@@ -594,6 +604,8 @@ class HILSERLAgent(Agent):
                 values = torch.tensor(VACUUM_COMMANDS, dtype=a.dtype)
                 cmd = self._vacuum_command(o, deterministic)
                 a = torch.cat([a, values[cmd][:, None]], dim=-1)
+            elif self.held_vacuum:
+                a = torch.cat([a, a.new_full((a.shape[0], 1), VACUUM_COMMANDS[1])], dim=-1)
         a = a.numpy().astype(np.float32)
         return a.reshape(1, self.action_dim) if x.ndim == 1 else a[:, None, :]
 

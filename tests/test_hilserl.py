@@ -381,6 +381,34 @@ def test_discrete_head_is_the_default_and_splits_the_action():
         g.vacuum_command(np.zeros(OBS_DIM))
 
 
+def test_held_vacuum_is_hilserl_fixed_gripper(demo, demo_td):
+    """vacuum_head='held' (HIL-SERL's fixed-gripper setup): the actor and the critics cover
+    the 6 pose dimensions, nothing learns the vacuum, every action commands hold, and the
+    acting weights alone reproduce the actions."""
+    cfg = HILSERLConfig(hidden=(16,), batch_size=32, vacuum_head="held")
+    agent = HILSERLAgent(OBS_DIM, config=cfg, seed=3)
+    first = lambda net: [m for m in net.modules() if isinstance(m, torch.nn.Linear)][0]  # noqa: E731
+    assert first(agent.critic.members[0]).in_features == OBS_DIM + 6
+    assert agent.grasp_critic is None and "grasp_critic" not in agent.state_dict()
+    obs = demo.observations[:50]
+    for deterministic in (True, False):
+        a = agent.act(obs, deterministic=deterministic)
+        assert a.shape == (50, 1, 7) and np.all(a[:, 0, 6] == VACUUM_COMMANDS[1])
+        assert np.all(np.abs(a[:, 0, :6]) < 1.0) and len(np.unique(a[:, 0, 0])) > 1
+    info = agent.update(demo_td[:64])
+    assert "grasp_critic_loss" not in info and np.isfinite(info["critic_loss"])
+    # A release in the stored actions (e.g. a takeover's) is not an input to the critics.
+    b = demo_td[:32].clone()
+    b["actions"][:, 0, 6] = -1.0
+    torch.testing.assert_close(agent._prepare(b)["actions"], agent._prepare(demo_td[:32])["actions"])
+    twin = HILSERLAgent.from_policy_state_dict(agent.policy_state_dict())
+    np.testing.assert_array_equal(twin.act(obs, deterministic=True), agent.act(obs, deterministic=True))
+    with pytest.raises(ValueError, match="vacuum_head"):
+        agent.vacuum_command(obs[0])
+    with pytest.raises(ValueError, match="held"):
+        HILSERLAgent(OBS_DIM, action_dim=1, config=cfg)
+
+
 def test_grasp_td_target_is_double_dqn():
     """y_g = r + gamma (1 - terminal) Qbar_g(s', argmax_c Q_g(s', c)): the online grasp
     critic chooses the command, the target grasp critic values it."""
