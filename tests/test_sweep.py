@@ -188,7 +188,8 @@ def test_status_reports_each_cell_from_its_files_without_starting_anything(tmp_p
         d.mkdir(parents=True)
     (done / "results.json").write_text(json.dumps({
         "final_eval": {"episodes": 2, "seed_set": "test", "successes": 1},
-        "final": {"wall_clock_s": 600.0}}))
+        "final": {"wall_clock_s": 600.0},
+        "provenance": {"git_commit": "48c79d63c1c5986b0a41a2121ddf2a1f63514538"}}))
     counters = {"stage": "online", "offline_done": 40, "env_steps": 150, "wall_clock_s": 120.0,
                 "episodes": [{"steps": 100}, {"steps": 50}]}
     (online / "state.safetensors").write_bytes(dump_state(
@@ -213,6 +214,11 @@ def test_status_reports_each_cell_from_its_files_without_starting_anything(tmp_p
     status = {line.split()[1]: line for line in lines[:4]}
     assert status[g.cells[0].name].startswith("done") and "1/2 on the test seeds" in \
         status[g.cells[0].name] and "10 min" in status[g.cells[0].name]
+    assert "code 48c79d6" in status[g.cells[0].name]
+    # the other seed of the done cell's row names the row's code; other rows do not
+    assert g.cells[1].method == g.cells[0].method and g.cells[1].seed != g.cells[0].seed
+    assert status[g.cells[1].name].endswith("its row ran at 48c79d6")
+    assert "row ran at" not in status[g.cells[2].name] + status[g.cells[3].name]
     assert status[g.cells[2].name].startswith("running")
     assert "pid 4242" in status[g.cells[2].name]
     assert "Stage III, 150/400 env steps, 2 episodes, 2 min so far" in status[g.cells[2].name]
@@ -227,6 +233,29 @@ def test_status_reports_each_cell_from_its_files_without_starting_anything(tmp_p
                         str(out), "--status", "--only", g.cells[2].name],
                        capture_output=True, text=True, timeout=120)
     assert r.stdout.splitlines()[0].startswith("partial")
+
+
+def test_code_notes_name_cells_whose_row_ran_at_other_code(tmp_path):
+    """Starting a seed of a row whose finished seeds ran at another commit gets a note (the
+    row would mix code); the same commit, a row with no finished seed, or an unknown or
+    dirty-marked commit are handled as such."""
+    from window_bench.harness.sweep import code_notes, row_commits, short_commit
+
+    g = _grid(tmp_path, GRID)
+    out = tmp_path / "runs"
+    assert short_commit("48c79d63c1c5986b0a41a2121ddf2a1f63514538-dirty") == "48c79d6-dirty"
+    assert short_commit("unknown") is None and short_commit(None) is None
+    d = g.cells[0].path(out)
+    d.mkdir(parents=True)
+    (d / "results.json").write_text(json.dumps({
+        "final_eval": {"episodes": 2, "seed_set": "test", "successes": 0},
+        "provenance": {"git_commit": "48c79d63c1c5986b0a41a2121ddf2a1f63514538"}}))
+    assert list(row_commits(g, out).values()) == [{"48c79d6"}]
+    todo = list(g.cells[1:])
+    notes = code_notes(todo, g, out, here="f67ee2d")
+    assert len(notes) == 1 and notes[0].startswith(g.cells[1].name)
+    assert "ran at 48c79d6, this checkout is f67ee2d" in notes[0]
+    assert code_notes(todo, g, out, here="48c79d6") == []
 
 
 def test_cli_bad_grid_exit_2(tmp_path):

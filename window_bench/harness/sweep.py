@@ -313,6 +313,40 @@ def _progress_detail(cell: Cell, counters: dict) -> str:
     return f"{where}, {(counters.get('wall_clock_s') or 0) / 60:.0f} min so far"
 
 
+def short_commit(commit: str | None) -> str | None:
+    """``abcdef1`` (or ``abcdef1-dirty``) of a provenance's ``git_commit``; None if unknown."""
+    if not commit or commit == "unknown":
+        return None
+    sha, _, dirty = commit.partition("-")
+    return sha[:7] + (f"-{dirty}" if dirty else "")
+
+
+def cell_commit(cell: Cell, out: Path) -> str | None:
+    """The code commit a finished training cell ran at (its results' provenance), short."""
+    if cell.on is not None:
+        return None
+    r = _read_json(cell.path(out) / "results.json") or {}
+    return short_commit((r.get("provenance") or {}).get("git_commit"))
+
+
+def row_of(cell: Cell) -> Cell:
+    """A table row: the cells that differ only in their seed share it."""
+    return dataclasses.replace(cell, seed=0)
+
+
+def row_commits(grid: Grid, out: Path) -> dict[Cell, set[str]]:
+    """Per row of ``grid``, the code commits its finished training cells ran at. A row whose
+    seeds ran at different commits mixes code; a new seed of a row is comparable with the
+    others when it runs from a checkout of the row's commit."""
+    rows: dict[Cell, set[str]] = {}
+    for c in grid.cells:
+        if c.on is None and cell_status(c, grid, out) == "done":
+            commit = cell_commit(c, out)
+            if commit is not None:
+                rows.setdefault(row_of(c), set()).add(commit)
+    return rows
+
+
 def cell_report(cell: Cell, grid: Grid, out: Path) -> dict:
     """Where one cell stands, read from its files alone (nothing is started or locked):
     ``status`` as :func:`cell_status`, with ``running`` for a partial or new cell whose run
@@ -331,6 +365,8 @@ def cell_report(cell: Cell, grid: Grid, out: Path) -> dict:
         wall = (r.get("final") or {}).get("wall_clock_s")
         detail = f"{k}/{n} on the {fe.get('seed_set')} seeds" if k is not None else ""
         detail += f", {wall / 60:.0f} min wall clock in bench run" if wall else ""
+        commit = cell_commit(cell, out)
+        detail += f", code {commit}" if commit else ""
     elif status.startswith("conflict"):
         status, detail = "conflict", status.removeprefix("conflict: ")
     else:
@@ -352,9 +388,40 @@ def cell_report(cell: Cell, grid: Grid, out: Path) -> dict:
     return {"cell": cell.name, "status": status, "detail": detail.rstrip("; ")}
 
 
+def code_notes(cells, grid: Grid, out: Path, here: str | None = None) -> list[str]:
+    """One line per cell about to run whose row's finished seeds ran at other code than
+    this checkout (``here``: this checkout's commit, read from git when None): the row
+    would mix code. A note, not an error: rerunning a row at new code is legitimate."""
+    if here is None:
+        from window_bench.harness.evaluation import git_commit
+        here = short_commit(git_commit())
+    rows = row_commits(grid, out)
+    notes = []
+    for c in cells:
+        commits = rows.get(row_of(c)) if c.on is None else None
+        if commits and here not in commits:
+            notes.append(f"{c.name}: its row's finished seeds ran at {', '.join(sorted(commits))}"
+                         f", this checkout is {here}; the row will mix code (run it from a "
+                         f"checkout of the row's commit to keep it)")
+    return notes
+
+
 def grid_report(grid: Grid, out: str | os.PathLike) -> list[dict]:
-    """:func:`cell_report` of every cell of ``grid`` under ``out``, in the grid's order."""
-    return [cell_report(c, grid, Path(out)) for c in grid.cells]
+    """:func:`cell_report` of every cell of ``grid`` under ``out``, in the grid's order. A
+    training cell that is not done, in a row with finished seeds, also names the commit(s)
+    those ran at (``its row ran at ...``): run it from a checkout of that commit to keep
+    the row's code."""
+    out = Path(out)
+    rows = row_commits(grid, out)
+    reports = []
+    for c in grid.cells:
+        r = cell_report(c, grid, out)
+        commits = rows.get(row_of(c)) if c.on is None else None
+        if commits and r["status"] != "done":
+            r["detail"] = "; ".join(x for x in (r["detail"], "its row ran at "
+                                                + ", ".join(sorted(commits))) if x)
+        reports.append(r)
+    return reports
 
 
 def demos_dir(cell: Cell, grid: Grid, out: Path) -> Path:
@@ -516,6 +583,8 @@ class Sweep:
         for c, s in conflicts.items():
             view.log(f"[red]skipped[/] {c.name}: {s}")
             results[c] = {"status": "conflict", "message": s}
+        for line in code_notes(todo, g, out):
+            view.log(f"[yellow]note[/] {line}")
         interrupted = False
         try:
             with view:
