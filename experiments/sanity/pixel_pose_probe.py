@@ -123,6 +123,14 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
 
+    if args.offset_episodes != 0 and args.offset_episodes < 8:
+        print(f"error: --offset-episodes {args.offset_episodes} must be 0 or at least 8 "
+              f"(a quarter held out, half of that again for validation)", file=sys.stderr)
+        return 2
+    if not args.align_error_mm >= 0:
+        print(f"error: --align-error-mm {args.align_error_mm} must be >= 0", file=sys.stderr)
+        return 2
+
     import torch
 
     from window_bench.installer.demos import load_or_collect_demos
