@@ -75,6 +75,19 @@ class DualRidge:
         return self.k_te @ alpha + self.y_mu
 
 
+LAMBDAS = (1e-1, 1e0, 1e1, 1e2, 1e3, 1e4)
+
+
+def fit_probe(x_tr, y_tr, x_te, n_val: int) -> tuple[float, np.ndarray]:
+    """Ridge probe: lambda chosen on the last ``n_val`` training rows (whole episodes), then
+    refitted on all training rows; returns (lambda, predictions for ``x_te``)."""
+    val = DualRidge(x_tr[:-n_val], y_tr[:-n_val], x_tr[-n_val:])
+    errs = [float(np.sqrt(((val.predict(lam) - y_tr[-n_val:]) ** 2).mean())) for lam in LAMBDAS]
+    lam = LAMBDAS[int(np.argmin(errs))]
+    del val
+    return lam, DualRidge(x_tr, y_tr, x_te).predict(lam)
+
+
 def offset_episodes(env_id: str, backbone, seeds, align_error_mm: float, near_m: float):
     """Pixel observations and ``window_pos_rel`` of every step with the panel within
     ``near_m`` of the seat, from scripted-installer episodes whose estimate of the seat is off
@@ -166,18 +179,13 @@ def main(argv=None) -> int:
     for name, sl in inputs.items():
         n_val = int(sum(len(pix[i].observations) for i in range(
             args.n_demos - args.test_demos - 5, args.n_demos - args.test_demos)))
-        val = DualRidge(x_tr[:-n_val, sl], y_tr[:-n_val], x_tr[-n_val:, sl])
-        lams = (1e-1, 1e0, 1e1, 1e2, 1e3, 1e4)   # chosen on the last 5 training demos
-        errs = [float(np.sqrt(((val.predict(lam) - y_tr[-n_val:]) ** 2).mean())) for lam in lams]
-        best = (lams[int(np.argmin(errs))], min(errs))
-        del val
-        pred = DualRidge(x_tr[:, sl], y_tr, x_te[:, sl]).predict(best[0])
+        lam, pred = fit_probe(x_tr[:, sl], y_tr, x_te[:, sl], n_val)   # on the last 5 training demos
         rmse = lambda m: (np.sqrt(((pred[m] - y_te[m]) ** 2).mean(0)) * 1000).round(2).tolist()  # noqa: E731
-        out["probes"][name] = {"lambda": best[0], "rmse_mm_xyz": rmse(slice(None)),
+        out["probes"][name] = {"lambda": lam, "rmse_mm_xyz": rmse(slice(None)),
                                "rmse_mm_xyz_near": rmse(near)}
         print(f"{name}: held-out RMSE (mm, x y z) all steps {out['probes'][name]['rmse_mm_xyz']}, "
               f"within {args.near_mm:.0f} mm of the seat {out['probes'][name]['rmse_mm_xyz_near']}"
-              f" (lambda {best[0]:g})")
+              f" (lambda {lam:g})")
     print(f"target std (mm): all {out['target_std_mm_test']}, near {out['target_std_mm_test_near']}")
     if args.offset_episodes:
         import time
@@ -195,12 +203,7 @@ def main(argv=None) -> int:
                "target_std_mm_test": (y_te.std(0) * 1000).round(2).tolist(),
                "wall_clock_s": round(time.perf_counter() - t0, 1), "probes": {}}
         for name, sl in inputs.items():
-            val = DualRidge(x_tr[:-n_val, sl], y_tr[:-n_val], x_tr[-n_val:, sl])
-            lams = (1e-1, 1e0, 1e1, 1e2, 1e3, 1e4)
-            errs = [float(np.sqrt(((val.predict(lam) - y_tr[-n_val:]) ** 2).mean())) for lam in lams]
-            lam = lams[int(np.argmin(errs))]
-            del val
-            pred = DualRidge(x_tr[:, sl], y_tr, x_te[:, sl]).predict(lam)
+            lam, pred = fit_probe(x_tr[:, sl], y_tr, x_te[:, sl], n_val)
             rm = (np.sqrt(((pred - y_te) ** 2).mean(0)) * 1000).round(2).tolist()
             res["probes"][name] = {"lambda": lam, "rmse_mm_xyz": rm}
             print(f"offset episodes, {name}: held-out RMSE (mm, x y z) {rm} (lambda {lam:g})")
