@@ -27,6 +27,10 @@ def test_bench_install_prints_stages_and_summary(capsys, tmp_path):
     (["install", "--episodes", "0"], "must be >= 1, got 0"),
     (["install", "--episodes", "three"], "expected an integer, got 'three'"),
     (["install", "--controller", "magic"], "invalid choice: 'magic'"),
+    (["eval", "p.safetensors", "--clearance", "30"],
+     "30 mm is outside the supported range [0.5, 20] mm per side"),
+    (["eval", "p.safetensors", "--clearance", "0.2"], "0.2 mm is outside the supported range"),
+    (["eval", "p.safetensors", "--clearance", "wide"], "'wide' is not a number of millimetres"),
 ])
 def test_bench_rejects_bad_input_with_a_clear_message(argv, needle, capsys):
     with pytest.raises(SystemExit) as exc:

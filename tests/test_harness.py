@@ -140,6 +140,11 @@ def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
     capsys.readouterr()
     assert main(["eval", str(out / "policies" / "step_0000400.safetensors"), "--episodes", "2"]) == 0
     assert "qcfql (400 env steps) on WindowInstall-A-v0: " in capsys.readouterr().out
+    # ... and at another clearance: the opening is rebuilt, the summary says so.
+    assert main(["eval", str(out / "policies" / "step_0000400.safetensors"), "--episodes", "1",
+                 "--eval-workers", "1", "--clearance", "8", "--out", str(tmp_path / "c.json")]) == 0
+    assert "on WindowInstall-A-v0 at 8 mm clearance: " in capsys.readouterr().out
+    assert json.loads((tmp_path / "c.json").read_text())["env_kwargs"] == {"clearance": 0.008}
     # The leaderboard is regenerated from the raw run files.
     from window_bench.harness.leaderboard import add_run, build
 
@@ -152,6 +157,38 @@ def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
     # The run directory is not silently reused.
     with pytest.raises(ValueError, match="already holds a run .* pass --resume"):
         Run("qcfql", "WindowInstall-A-v0", "smoke", 0, out)
+
+
+class _Still:
+    """An agent that holds the arm still (zero pose command, vacuum on)."""
+    h, track = 1, "state"
+
+    @classmethod
+    def from_policy_state_dict(cls, state):
+        return cls()
+
+    def reset(self):
+        pass
+
+    def act(self, obs, deterministic=True):
+        return np.array([[0, 0, 0, 0, 0, 0, 1]], np.float32)
+
+
+def test_eval_env_kwargs_rebuild_the_opening():
+    """``Evaluator(..., env_kwargs)`` builds its env with them (the clearance check of
+    ``bench eval --clearance``), and the scene's range check refuses a bad one."""
+    from window_bench.harness.run import Evaluator, _eval_rollout
+
+    _, env = _eval_rollout(_Still, {}, "WindowInstall-A-v0", 5, {"clearance": 0.01})
+    try:
+        assert env.unwrapped.cfg.clearance == 0.01
+        assert np.allclose(env.unwrapped.cfg.opening, (0.52, 0.52))
+    finally:
+        env.close()
+    rows = Evaluator("WindowInstall-A-v0", 1, 1, 3, env_kwargs={"clearance": 0.01})(_Still, {})
+    assert [r["seed"] for r in rows] == [100_000] and not rows[0]["success"]
+    with pytest.raises(ValueError, match=r"clearance=0.05 is outside the supported range"):
+        Evaluator("WindowInstall-A-v0", 1, 1, 3, env_kwargs={"clearance": 0.05})(_Still, {})
 
 
 def _assert_same(a, b, path="state"):

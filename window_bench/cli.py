@@ -59,6 +59,18 @@ _positive = _int_at_least(1)
 _seed = _int_at_least(0)
 
 
+def _clearance_mm(value: str) -> float:
+    """``--clearance``: millimetres per side within the scene's range, 0.5-20 mm."""
+    try:
+        mm = float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{value!r} is not a number of millimetres") from None
+    if not 0.5 <= mm <= 20.0:
+        raise argparse.ArgumentTypeError(f"{value} mm is outside the supported range "
+                                         f"[0.5, 20] mm per side")
+    return mm
+
+
 def _out_file(value: str) -> str:
     """A file this user can create: checked before any work, not after it."""
     from window_bench.harness.files import check_out_dir
@@ -308,12 +320,15 @@ def cmd_eval(args) -> int:
 
     try:
         r = evaluate_policy_file(args.checkpoint, args.episodes, args.eval_workers,
-                                 env_id=args.env, seed_set=args.seed_set, progress=True)
+                                 env_id=args.env, seed_set=args.seed_set, progress=True,
+                                 clearance=None if args.clearance is None
+                                 else args.clearance / 1000.0)
     except (FileNotFoundError, ValueError) as e:   # a missing, foreign or corrupt file
         print(f"error: {e}", file=sys.stderr)
         return 2
     lo, hi = r["wilson95"]
-    print(f"{r['method']} ({r['trained_env_steps']} env steps) on {r['env_id']}: "
+    at = f" at {1000 * r['env_kwargs']['clearance']:g} mm clearance" if r["env_kwargs"] else ""
+    print(f"{r['method']} ({r['trained_env_steps']} env steps) on {r['env_id']}{at}: "
           f"{r['successes']}/{r['episodes']} = {100 * r['success_rate']:.0f} % "
           f"[{100 * lo:.0f}, {100 * hi:.0f}]; Pr(S) {r['pr_S']}, Pr(I|S) {r['pr_I_given_S']}, "
           f"Pr(T|I) {r['pr_T_given_I']}; failures {r['failure_modes']}")
@@ -530,6 +545,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluation seeds: dev (tuning, default) or test (reported numbers)")
     e.add_argument("--eval-workers", type=_positive, default=2, metavar="N",
                    help="evaluation processes (1: in this process)")
+    e.add_argument("--clearance", type=_clearance_mm, default=None, metavar="MM",
+                   help="rebuild the opening with this clearance per side, 0.5-20 mm (None: "
+                        "the env's 2 mm); a tolerance-sensitivity check, not a table entry")
     e.set_defaults(func=cmd_eval)
     lb = sub.add_parser("leaderboard", help="regenerate the leaderboard from raw run files")
     lb.add_argument("--add", nargs="+", metavar="RUN_DIR", help="first copy these finished "

@@ -126,8 +126,10 @@ class AgentPolicy:
 
 
 # ---------------------------------------------------------------------------- evaluation
-def _eval_rollout(agent_cls: type, policy_state: dict, env_id: str, max_steps: int):
-    """A deterministic rollout of the policy in the env of its observation track."""
+def _eval_rollout(agent_cls: type, policy_state: dict, env_id: str, max_steps: int,
+                  env_kwargs: dict | None = None):
+    """A deterministic rollout of the policy in the env of its observation track
+    (``env_kwargs``: constructor arguments of the env, e.g. ``{"clearance": 0.005}``)."""
     import window_bench  # noqa: F401  (registers the envs in a spawned worker)
     from window_bench.pixels.track import make_track_env
 
@@ -136,7 +138,7 @@ def _eval_rollout(agent_cls: type, policy_state: dict, env_id: str, max_steps: i
     # Pixels are rendered and encoded only where the policy reads them (its chunk grid).
     env = make_track_env(env_id, getattr(agent_cls, "track", "state"),
                          weights=policy_state.get("encoder_weights"), max_episode_steps=max_steps,
-                         observe_every=int(agent.h))
+                         observe_every=int(agent.h), **(env_kwargs or {}))
     return Rollout(env, AgentPolicy(agent, deterministic=True), env_id=env_id), env
 
 
@@ -161,12 +163,13 @@ _WORKER_ROLLOUT: list = []
 def _eval_worker(task) -> dict:
     """One episode in a pool worker. The worker builds the agent and env once per
     evaluation (``token``) and keeps them for that evaluation's next episodes."""
-    token, agent_cls, policy_state, env_id, seed, max_steps = task
+    token, agent_cls, policy_state, env_id, seed, max_steps, env_kwargs = task
     if not _WORKER_ROLLOUT or _WORKER_ROLLOUT[0] != token:
         torch.set_num_threads(1)
         if _WORKER_ROLLOUT:
             _WORKER_ROLLOUT[2].close()
-        _WORKER_ROLLOUT[:] = [token, *_eval_rollout(agent_cls, policy_state, env_id, max_steps)]
+        _WORKER_ROLLOUT[:] = [token, *_eval_rollout(agent_cls, policy_state, env_id, max_steps,
+                                                    env_kwargs)]
     return _eval_episode(_WORKER_ROLLOUT[1], seed)
 
 
@@ -226,8 +229,9 @@ class Evaluator:
     ran which episode."""
 
     def __init__(self, env_id: str, episodes: int, workers: int, max_steps: int,
-                 seed_set: str = "dev", progress: bool = False):
+                 seed_set: str = "dev", progress: bool = False, env_kwargs: dict | None = None):
         self.env_id, self.episodes, self.max_steps = env_id, episodes, max_steps
+        self.env_kwargs = dict(env_kwargs or {})
         self.seed_set, self.progress = seed_set, progress
         self.seeds = eval_seeds(seed_set, episodes)
         self.workers = max(1, min(workers, episodes))
@@ -242,7 +246,7 @@ class Evaluator:
                   disable=not self.progress, leave=False) as bar:
             if self.workers == 1:
                 rollout, env = _eval_rollout(agent_cls, policy_state, self.env_id,
-                                             self.max_steps)
+                                             self.max_steps, self.env_kwargs)
                 try:
                     for seed in self.seeds:
                         rows.append(_eval_episode(rollout, seed))
@@ -253,8 +257,8 @@ class Evaluator:
                 if self.pool is None:
                     self.pool = mp.get_context("spawn").Pool(self.workers)
                 token = os.urandom(8).hex()
-                tasks = [(token, agent_cls, policy_state, self.env_id, seed, self.max_steps)
-                         for seed in self.seeds]
+                tasks = [(token, agent_cls, policy_state, self.env_id, seed, self.max_steps,
+                          self.env_kwargs) for seed in self.seeds]
                 for row in self.pool.imap_unordered(_eval_worker, tasks):
                     rows.append(row)
                     bar.update(1)
@@ -912,12 +916,22 @@ def load_policy_file(path: str | os.PathLike) -> tuple[type, dict, dict]:
 
 def evaluate_policy_file(path: str | os.PathLike, episodes: int, workers: int = 2,
                          env_id: str | None = None, seed_set: str = "dev",
-                         max_steps: int = 600, progress: bool = False) -> dict:
+                         max_steps: int = 600, progress: bool = False,
+                         clearance: float | None = None) -> dict:
     """``bench eval``: evaluate a frozen policy file from ``policies/`` (interventions off),
-    after :func:`load_policy_file` checked it."""
+    after :func:`load_policy_file` checked it. ``clearance`` (m per side, the scene's range
+    [0.0005, 0.02]; None: the env id's own, 0.002) rebuilds the opening with another
+    clearance: a tolerance-sensitivity check, not a registered task, so its rows are not
+    comparable with the tables and the summary records it in ``env_kwargs``."""
+    from window_bench.envs.scene import SceneConfig
+
+    env_kwargs = {}
+    if clearance is not None:
+        SceneConfig(clearance=float(clearance))      # the scene's range check, before any work
+        env_kwargs["clearance"] = float(clearance)
     agent_cls, policy, meta = load_policy_file(path)
     env_id = env_id or meta["env_id"]
-    ev = Evaluator(env_id, episodes, workers, max_steps, seed_set, progress)
+    ev = Evaluator(env_id, episodes, workers, max_steps, seed_set, progress, env_kwargs)
     try:
         rows = ev(agent_cls, policy)
     finally:
@@ -925,4 +939,4 @@ def evaluate_policy_file(path: str | os.PathLike, episodes: int, workers: int = 
     return {"policy": str(path), "method": meta["method"], "env_id": env_id,
             "trained_env_steps": meta["env_steps"], **summarize_eval(rows),
             "seed_set": seed_set, "eval_seeds": [ev.seeds[0], ev.seeds[-1]],
-            "provenance": provenance()}
+            "env_kwargs": env_kwargs, "provenance": provenance()}
