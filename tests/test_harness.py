@@ -187,6 +187,7 @@ def test_eval_env_kwargs_rebuild_the_opening():
         env.close()
     rows = Evaluator("WindowInstall-A-v0", 1, 1, 3, env_kwargs={"clearance": 0.01})(_Still, {})
     assert [r["seed"] for r in rows] == [100_000] and not rows[0]["success"]
+    assert rows[0]["final_position_error_mm"] > 100.0        # the panel is still on the rack
     with pytest.raises(ValueError, match=r"clearance=0.05 is outside the supported range"):
         Evaluator("WindowInstall-A-v0", 1, 1, 3, env_kwargs={"clearance": 0.05})(_Still, {})
 

@@ -23,6 +23,8 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
 from window_bench.harness.evaluation import atomic_write_text, provenance
 from window_bench.harness.run import evaluate_policy_file
 
@@ -55,6 +57,7 @@ def main(argv=None):
         p.error(f"no finished run in {missing}")
     out = Path(a.out)
     done = json.loads(out.read_text())["entries"] if out.is_file() else []
+    done = [e for e in done if "final_position_error_mm" in e]   # entries of an older format
     have = {(e["method"], e["seed"], e["clearance_mm"]) for e in done}
     for (method, seed), run_dir in runs.items():
         for mm in a.clearances:
@@ -63,7 +66,13 @@ def main(argv=None):
             t0 = time.perf_counter()
             r = evaluate_policy_file(final_policy(run_dir), a.episodes, a.workers,
                                      seed_set="dev", clearance=mm / 1000.0)
+            seated = [x["final_position_error_mm"] for x in r["rows"]
+                      if x["failure_mode"] == "unstable_seating"]
             entry = {"method": method, "seed": seed, "clearance_mm": mm,
+                     # how far from the 2 mm acceptance the panels that reached the stop ended
+                     "unstable_seating_final_error_mm_median":
+                         float(np.median(seated)) if seated else None,
+                     "final_position_error_mm": [x["final_position_error_mm"] for x in r["rows"]],
                      "policy": str(final_policy(run_dir).relative_to(ROOT)),
                      "wall_s": round(time.perf_counter() - t0, 1),
                      **{k: r[k] for k in ("episodes", "successes", "success_rate", "wilson95",
@@ -72,7 +81,9 @@ def main(argv=None):
             done.append(entry)
             print(f"{method:14s} s{seed} {mm:4g} mm: {r['successes']}/{r['episodes']} "
                   f"Pr(I|S) {r['pr_I_given_S']} Pr(T|I) {r['pr_T_given_I']} "
-                  f"{r['failure_modes']} ({entry['wall_s']} s)", flush=True)
+                  f"{r['failure_modes']} seated-but-off-centre median "
+                  f"{entry['unstable_seating_final_error_mm_median']} mm ({entry['wall_s']} s)",
+                  flush=True)
             atomic_write_text(out, json.dumps({"env_id": a.env, "seed_set": "dev",
                                                "entries": done, "provenance": provenance()},
                                               indent=1))

@@ -153,7 +153,9 @@ def _eval_episode(rollout: Rollout, seed: int) -> dict:
             "failure_mode": "" if log.terminated[-1] else (info["failure_mode"] or "timeout"),
             # suction lost by a vacuum-off command vs grips broken at the holding limit
             "commanded_releases": int(info["suction_releases"]),
-            "grip_breaks": int(info["suction_failures"])}
+            "grip_breaks": int(info["suction_failures"]),
+            # the acceptance test's centring error on the last step (accepted: < 2 mm)
+            "final_position_error_mm": round(1000.0 * float(info["position_error"]), 2)}
 
 
 #: A pool worker's rollout for the evaluation in progress: (token, rollout, env).
@@ -939,4 +941,4 @@ def evaluate_policy_file(path: str | os.PathLike, episodes: int, workers: int = 
     return {"policy": str(path), "method": meta["method"], "env_id": env_id,
             "trained_env_steps": meta["env_steps"], **summarize_eval(rows),
             "seed_set": seed_set, "eval_seeds": [ev.seeds[0], ev.seeds[-1]],
-            "env_kwargs": env_kwargs, "provenance": provenance()}
+            "env_kwargs": env_kwargs, "rows": rows, "provenance": provenance()}
