@@ -60,14 +60,17 @@ _seed = _int_at_least(0)
 
 
 def _clearance_mm(value: str) -> float:
-    """``--clearance``: millimetres per side within the scene's range, 0.5-20 mm."""
+    """``--clearance``: millimetres per side within the scene's range (0.5-20 mm)."""
+    from window_bench.envs.scene import CLEARANCE_RANGE
+
+    lo, hi = (1000.0 * v for v in CLEARANCE_RANGE)
     try:
         mm = float(value)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{value!r} is not a number of millimetres") from None
-    if not 0.5 <= mm <= 20.0:
+    if not lo <= mm <= hi:
         raise argparse.ArgumentTypeError(f"{value} mm is outside the supported range "
-                                         f"[0.5, 20] mm per side")
+                                         f"[{lo:g}, {hi:g}] mm per side")
     return mm
 
 

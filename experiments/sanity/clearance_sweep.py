@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from window_bench.envs.scene import CLEARANCE_RANGE
 from window_bench.harness.evaluation import atomic_write_text, provenance
 from window_bench.harness.run import evaluate_policy_file
 
@@ -49,7 +50,8 @@ def main(argv=None):
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
-    if a.episodes < 1 or any(not 0.5 <= c <= 20 for c in a.clearances):
+    lo, hi = (1000.0 * v for v in CLEARANCE_RANGE)
+    if a.episodes < 1 or any(not lo <= c <= hi for c in a.clearances):
         p.error(f"--episodes {a.episodes} >= 1 and --clearances {a.clearances} in [0.5, 20] mm")
     runs = {(m, s): Path(a.runs) / a.env / f"{m}-cpu-s{s}" for m in a.methods for s in a.seeds}
     missing = [str(d) for d in runs.values() if not (d / "results.json").is_file()]

@@ -106,6 +106,11 @@ PHYSICS_PER_CONTROL = 2
 CONTROL_SUBSTEPS = 50    # OSC updates per 10 Hz policy step
 
 
+#: The supported clearance per side, metres (SceneConfig refuses others; ``bench eval
+#: --clearance`` states it in millimetres).
+CLEARANCE_RANGE = (0.0005, 0.02)
+
+
 @dataclass(frozen=True)
 class SceneConfig:
     """Geometry of one benchmark instance. Every length in metres."""
@@ -123,7 +128,7 @@ class SceneConfig:
         # Up to 0.6 m: a larger panel placed at the edge of the ground region (y = -0.3 m,
         # yaw 15 deg) would start inside the wall.
         for name, lo, hi in (("panel_width", 0.3, 0.6), ("panel_height", 0.3, 0.6),
-                             ("clearance", 0.0005, 0.02), ("panel_thickness", 0.01, 0.08)):
+                             ("clearance", *CLEARANCE_RANGE), ("panel_thickness", 0.01, 0.08)):
             v = getattr(self, name)
             if not (lo <= v <= hi):
                 raise ValueError(f"{name}={v!r} is outside the supported range [{lo}, {hi}]")
