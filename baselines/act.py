@@ -54,7 +54,7 @@ import torch
 from torch import nn
 
 from window_bench.data.steplog import ACTION_DIM, EpisodeLog
-from window_bench.envs.task import STAGES
+from window_bench.envs.task import FAILURE_MODE_NAMES, STAGES
 from window_bench.harness.agent import (Agent, AgentSpec, generator_state, load_optimizer_state,
                                         module_state, optimizer_state, with_overrides)
 
@@ -814,7 +814,7 @@ def _rollout(agent, env_id: str, seeds, max_steps: int | None = None) -> list[di
                 nearest, lateral_closest = float(info["position_error"]), _lateral_mm(obs)
         actions = np.asarray(actions, dtype=np.float64)
         rows.append({"seed": int(seed), "success": bool(term), "steps": len(actions),
-                     "failure_mode": info["failure_mode"] or None,
+                     "failure_mode": FAILURE_MODE_NAMES[info["failure_code"]] or None,
                      "suction_acquired": bool(info["suction_acquired"]),
                      "insertion_entered": bool(info["insertion_entered"]),
                      "position_error_mm": round(1000 * float(info["position_error"]), 2),

@@ -176,7 +176,10 @@ if want("lb-rate") or want("lb-path") or want("lb-root"):
             (d / "manifest.json").write_text(json.dumps(m))
         root = WORK / "lbroot" / case / "a" / "b" / "runs"
         root.mkdir(parents=True)
-        r = bench("leaderboard", "--add", d, "--root", root, cwd=WORK / "lbroot" / case / "a" / "b")
+        lb_readme = WORK / "lbroot" / case / "a" / "b" / "leaderboard" / "README.md"
+        lb_readme.parent.mkdir(parents=True)
+        r = bench("leaderboard", "--add", d, "--root", root, "--readme", lb_readme,
+                  cwd=WORK / "lbroot" / case / "a" / "b")
         outside = sorted(str(p.relative_to(WORK / "lbroot" / case)) for p in (WORK / "lbroot" / case).rglob("*")
                          if p.is_file() and not str(p).startswith(str(root))
                          and p.name not in ("README.md", "leaderboard.md"))   # the tables it regenerates
@@ -191,8 +194,9 @@ if want("lb-rate") or want("lb-path") or want("lb-root"):
         shutil.copytree(base, root / "WindowInstall-A-v0" / "good")
         (root / "WindowInstall-A-v0" / "bad").mkdir(parents=True)
         (root / "WindowInstall-A-v0" / "bad" / "results.json").write_text('{"schema_version": 1}')
-        r = bench("leaderboard", "--root", root, cwd=cwd)
         table = cwd / "leaderboard" / "README.md"
+        table.parent.mkdir(parents=True)
+        r = bench("leaderboard", "--root", root, "--readme", table, cwd=cwd)
         row("one bad results.json in the root, bench leaderboard", r,
             f"table written: {table.exists() and 'qcfql-offline' in table.read_text()}")
 

@@ -1,12 +1,12 @@
 """Shared test setup.
 
-Headless rendering needs ``MUJOCO_GL`` set before ``mujoco`` is imported anywhere; this file
-is imported by pytest before any test module, so it is the place to do it.
+``MUJOCO_GL`` is left as the user has it: ``import window_bench`` (below, before any test
+module imports mujoco) picks a headless backend where there is no display, as it does for
+users, so the suite renders the way a user's script does.
 """
 
 import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 # These machines have 2 cores: one BLAS/torch thread per process.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 

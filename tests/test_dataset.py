@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import minari
 import numpy as np
@@ -268,3 +269,62 @@ def test_code_permalink_only_for_a_web_remote(monkeypatch):
             ("https://example.org/o/r.git", "abc-dirty", None)):
         monkeypatch.setattr(D, "_git", lambda *a, r=remote: r)
         assert D._permalink(commit) == want
+
+
+# ---------------------------------------------------------------- env specs that name code
+def _window_dataset(root) -> Path:
+    """A dataset of the registered WindowInstall-A-v0 (its 52-float observations)."""
+    rng = np.random.default_rng(0)
+    ep = _episode(3, episode_id=0, seed=1)
+    ep.observations = rng.normal(size=(4, 52)).astype(np.float32)
+    ep.env_id = "WindowInstall-A-v0"
+    return save_episodes([ep], "wb/win-v0", env_id="WindowInstall-A-v0", obs_dim=52,
+                         data_path=root)
+
+
+def _edit_spec(path: Path, key: str = "env_spec", drop_spaces: bool = False, **changes) -> None:
+    meta_file = path / "data" / "metadata.json"
+    meta = json.loads(meta_file.read_text())
+    meta[key] = json.dumps({**json.loads(meta["env_spec"]), **changes})
+    if drop_spaces:
+        del meta["observation_space"], meta["action_space"]
+    meta_file.write_text(json.dumps(meta))
+
+
+def test_our_env_is_recovered_with_our_registration(tmp_path):
+    from window_bench.data.dataset import recover_env
+
+    _window_dataset(tmp_path)
+    env = recover_env("wb/win-v0", data_path=tmp_path)
+    try:
+        assert env.spec.id == "WindowInstall-A-v0" and env.spec.kwargs["obs_mode"] == "flat"
+        assert env.observation_space.shape == (52,)
+    finally:
+        env.close()
+    assert len(load_episodes("wb/win-v0", data_path=tmp_path)) == 1
+
+
+@pytest.mark.parametrize("key,changes,drop_spaces,message", [
+    ("env_spec", {"entry_point": "subprocess:run"}, False,
+     "env spec names env 'WindowInstall-A-v0' with entry point 'subprocess:run'"),
+    ("env_spec", {"entry_point": "subprocess:run"}, True, "records no observation_space"),
+    ("env_spec", {"id": "CartPole-v1", "entry_point": "subprocess:run"}, False,
+     "env spec names env 'CartPole-v1'"),
+    ("env_spec", {"additional_wrappers": [{"name": "W", "entry_point": "subprocess:run",
+                                           "kwargs": {}}]}, False, "with entry point"),
+    ("eval_env_spec", {"entry_point": "subprocess:run"}, False, "eval_env_spec: its env spec"),
+])
+def test_a_spec_that_names_code_is_never_built(tmp_path, key, changes, drop_spaces, message):
+    """Minari would import and call the entry point (here with kwargs that touch a marker)
+    when a space is missing, and in recover_environment; window-bench refuses the file."""
+    from window_bench.data.dataset import recover_env
+
+    marker = tmp_path / "MARKER"
+    path = _window_dataset(tmp_path / "ds")
+    _edit_spec(path, key, drop_spaces, kwargs={"args": ["touch", str(marker)]}, **changes)
+    with pytest.raises(ValueError, match=message) as exc:
+        load_episodes("wb/win-v0", data_path=tmp_path / "ds")
+    assert "\n" not in str(exc.value)
+    with pytest.raises(ValueError, match=message):
+        recover_env("wb/win-v0", data_path=tmp_path / "ds")
+    assert not marker.exists()

@@ -388,7 +388,7 @@ def test_broken_grip_needs_a_fresh_vacuum_command(make_env, monkeypatch):
 
 
 def test_physics_divergence_truncates_instead_of_crashing(make_env):
-    env = make_env(B)
+    env = make_env(B, info_strings=True)
     u = env.unwrapped
     env.reset(seed=0)
     # Kick the panel to an absurd speed: the step must end the episode as truncated with

@@ -293,6 +293,11 @@ def test_an_unreadable_demo_dataset_is_an_error_not_recollected(runs, tmp_path, 
     ("h=3", "--agent-config h = 3: the method qcfql has h = 10 (Table 1); choose the method "
             "with the chunk horizon you want"),
     ("nope=1", "unknown agent config field 'nope'; fields of QCFQLConfig: h, hidden, "),
+    ("hidden=-5", "QCFQLConfig.hidden = -5 is not allowed: it must be a list of integers"),
+    ("hidden=[100000]", "QCFQLConfig.hidden = (100000,) is not allowed: each entry must be at "
+                        "most 8192"),
+    ("student_hidden=5", "QCFQLConfig.student_hidden = 5 is not allowed: it must be a list "
+                         "of integers or null"),
 ])
 def test_a_bad_agent_config_stops_before_demos_or_files(tmp_path, capsys, item, message):
     out, demos = tmp_path / "run", tmp_path / "demos"
@@ -303,12 +308,17 @@ def test_a_bad_agent_config_stops_before_demos_or_files(tmp_path, capsys, item, 
 
 
 @pytest.mark.parametrize("argv,message", [
-    (RUN[:-1] + ["-1", "--out", "x"], "bench run: error: argument --seed: must be >= 0, got -1"),
-    (["install", "--seed", "-1"], "bench install: error: argument --seed: must be >= 0, got -1"),
-    (["demos", "--seed", "-2"], "bench demos: error: argument --seed: must be >= 0, got -2"),
-    (["supervise", "--seed", "-1"], "bench supervise: error: argument --seed: must be >= 0"),
+    (RUN[:-1] + ["-1", "--out", "x"],
+     "bench run: error: argument --seed: must be in 0..2147483647, got -1"),
+    (["install", "--seed", "-1"],
+     "bench install: error: argument --seed: must be in 0..2147483647, got -1"),
+    (["demos", "--seed", "-2"],
+     "bench demos: error: argument --seed: must be in 0..2147483647, got -2"),
+    (["supervise", "--seed", "-1"], "bench supervise: error: argument --seed: must be in 0.."),
+    (RUN[:-1] + ["99999999999999999999999", "--out", "x"],   # torch cannot seed with it
+     "bench run: error: argument --seed: must be in 0..2147483647, got 99999999999999999999999"),
 ])
-def test_a_negative_seed_is_one_line_and_exit_2(argv, message, capsys):
+def test_a_seed_out_of_range_is_one_line_and_exit_2(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2

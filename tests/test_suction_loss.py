@@ -15,7 +15,7 @@ OFF = np.zeros(7, np.float32)                           # zero motion, vacuum of
 
 
 def test_commanded_release_is_reported(make_env):
-    env = make_env(A)
+    env = make_env(A, info_strings=True)
     _, info = env.reset(seed=0)             # A: latched at reset
     assert info["suction_loss"] == "" and info["suction_releases"] == 0
     _, _, _, _, info = env.step(HOLD)
@@ -28,7 +28,7 @@ def test_commanded_release_is_reported(make_env):
 
 
 def test_grip_break_is_reported(make_env, monkeypatch):
-    env = make_env(A)
+    env = make_env(A, info_strings=True)
     env.reset(seed=0)
     monkeypatch.setattr(E, "VACUUM_HOLD_FORCE", 1.0)     # below the panel's weight
     monkeypatch.setattr(E, "VACUUM_HOLD_MOMENT", 0.01)

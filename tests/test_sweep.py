@@ -298,3 +298,110 @@ def test_tiny_grid_on_ray_resumes_shares_stage1_and_makes_its_tables(tmp_path):
     t2 = build(out, tmp_path / "docs", figures=False)["table2.md"]
     rows = [ln for ln in t2.splitlines() if ln.startswith("| Ours (offline")]
     assert len(rows) == 2 and all("| 2 |" in r and "M = 2" in r for r in rows)
+
+
+# ---------------------------------------------------------------------------- hostile grids
+ONE = '[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseeds=[0]\n'
+
+
+@pytest.mark.parametrize("line, message", [
+    ('agent_config = { q_agg = "x/../../../../escape" }',
+     "agent_config.q_agg = 'x/../../../../escape'; allowed: a word"),
+    ("agent_config = { lr = nan }", "agent_config.lr = nan; allowed: finite numbers"),
+    ("agent_config = { alpha = -inf }", "agent_config.alpha = -inf; allowed: finite numbers"),
+    ("agent_config = { hidden = -5 }", "agent_config.hidden = -5; allowed: a list, like"),
+    ("agent_config = { hidden = [-5] }", "QCFQLConfig.hidden = (-5,) is not allowed"),
+    ('agent_config = { hidden = [256, "a"] }', "allowed: a number, true/false, a word, or a list"),
+    ("agent_config = { alpha = [1, 2] }", "agent_config.alpha = (1, 2); allowed: one value"),
+    ("agent_config = { lr = 2.0 }", "QCFQLConfig.lr = 2.0 is not allowed"),
+    ('agent_config = { q_agg = "max" }', "QCFQLConfig.q_agg = 'max' is not allowed"),
+    ("agent_config = { __class__ = 1 }", "agent_config.__class__: not a config field name"),
+    ("agent_config = { nope = 1 }", "unknown agent config field 'nope'"),
+    ("agent_config = { h = 5 }", "set the chunk horizon with the block's h"),
+    ("agent_config = { alpha = { a = 1 } }", "allowed: a number, true/false, a word"),
+])
+def test_agent_config_values_are_checked_when_the_grid_is_loaded(tmp_path, line, message):
+    with pytest.raises(GridError) as e:
+        _grid(tmp_path, ONE + line + "\n")
+    assert message in str(e.value) and "\n" not in str(e.value), str(e.value)
+
+
+@pytest.mark.parametrize("head, message", [
+    ('name = "../../x"\n', "name = '../../x'; allowed: one file name"),
+    ('operator = "../../x"\n', "operator = '../../x'; allowed: average, expert, novice"),
+    ("table = 9\n", "table = 9; allowed: an integer in 2..7"),
+])
+def test_names_that_become_paths_are_checked(tmp_path, head, message):
+    with pytest.raises(GridError) as e:
+        _grid(tmp_path, head + ONE)
+    assert message in str(e.value)
+
+
+def test_a_sweep_writes_nothing_outside_out(tmp_path, capsys, monkeypatch):
+    """A bad grid stops with one line and exit 2 before any file; a cell path that a symlink
+    leads outside --out is refused before Ray starts; --out a file is refused too."""
+    from window_bench.cli import main
+    from window_bench.harness.sweep import Sweep
+
+    monkeypatch.chdir(tmp_path)
+    bad = tmp_path / "bad.toml"
+    bad.write_text('profile = "smoke"\n' + ONE + 'agent_config = { q_agg = "x/../../../../e" }\n')
+    (tmp_path / "afile").write_text("x")
+    before = sorted(tmp_path.rglob("*"))
+    for argv in (["sweep", str(bad), "--out", "runs/o"],
+                 ["sweep", str(bad), "--out", "runs/o", "--status"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "q_agg = 'x/../../../../e'" in err
+    good = tmp_path / "good.toml"
+    good.write_text('profile = "smoke"\n' + ONE)
+    before.append(good)
+    for argv in (["sweep", str(good), "--out", "afile"],
+                 ["sweep", str(good), "--out", "afile", "--status"]):
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == 2
+        assert "argument --out: afile is a file, not a directory" in capsys.readouterr().err
+    assert sorted(tmp_path.rglob("*")) == sorted(before)
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    out.mkdir()
+    elsewhere.mkdir()
+    (out / "WindowInstall-A-v0").symlink_to(elsewhere)
+    with pytest.raises(GridError, match="outside --out"):
+        Sweep(load_grid(good), out)
+
+
+def test_a_binary_or_oversize_grid_file_is_one_line(tmp_path):
+    from window_bench.harness.sweep import MAX_GRID_BYTES
+
+    p = tmp_path / "g.toml"
+    p.write_bytes(b"\x80\x04garbage" * 10)
+    with pytest.raises(GridError, match="not valid TOML .*utf-8"):
+        load_grid(p)
+    with open(p, "wb") as f:
+        f.truncate(MAX_GRID_BYTES + 1)
+    with pytest.raises(GridError, match="over the 1,048,576-byte limit"):
+        load_grid(p)
+
+
+def test_status_reads_hand_edited_results_without_traceback(tmp_path):
+    """A finished cell whose results.json has ``final_eval`` or ``final`` of the wrong type
+    (hand-edited) is reported as a status line, never as a traceback."""
+    from window_bench.harness.sweep import _progress_detail, cell_report
+
+    grid_file = tmp_path / "g.toml"
+    grid_file.write_text('name = "g"\ntable = 2\nprofile = "smoke"\nM = 4\nseed_set = "dev"\n'
+                         '[[train]]\nmethods = ["qcfql"]\nenvs = ["WindowInstall-A-v0"]\n'
+                         'seeds = [0]\n')
+    grid = load_grid(grid_file)
+    cell = grid.cells[0]
+    run = cell.path(tmp_path / "runs")
+    run.mkdir(parents=True)
+    for bad in ({"final_eval": 7}, {"final_eval": {"episodes": 4, "seed_set": "dev"},
+                                     "final": "x"}, {"final_eval": [1, 2]}):
+        (run / "results.json").write_text(json.dumps(bad))
+        report = cell_report(cell, grid, tmp_path / "runs")
+        assert isinstance(report["status"], str)
+    detail = _progress_detail(cell, {"stage": "offline", "offline_done": "many",
+                                     "wall_clock_s": None})
+    assert detail.startswith("Stage I, 0 updates")

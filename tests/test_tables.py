@@ -23,7 +23,7 @@ def _results(root: Path, method: str, env: str, seed: int, success: float, *, h=
     k = round(success * M)
     fe = {"seed_set": seed_set, "episodes": M, "successes": k, "success_rate": k / M,
           "wilson95": [0.0, 1.0], "cycle_time_s": cycle, "pr_S": 1.0, "pr_I_given_S": 0.9,
-          "pr_T_given_I": k / M / 0.9, "policy": "policies/final.safetensors"}
+          "pr_T_given_I": min(1.0, k / M / 0.9), "policy": "policies/final.safetensors"}
     r = {"schema_version": 1, "method": m, "env_id": env, "profile": PROFILES["smoke"].as_dict(),
          "seed": seed, "agent_config_overrides": overrides or {},
          "final": {"success_rate": k / M, "wilson95": [0, 1], "episodes": M,
@@ -110,13 +110,23 @@ def test_figures_written(tmp_path):
         assert (tmp_path / "out" / name).stat().st_size > 1000
 
 
-def test_committed_results_pages_equal_bench_tables(tmp_path, monkeypatch):
-    """docs/results/*.md are byte for byte what bench tables makes of leaderboard/runs."""
+def test_committed_results_pages_equal_bench_tables(tmp_path, monkeypatch, capsys):
+    """docs/results/*.md and README.md's headline are byte for byte what the documented
+    command (``bench tables --runs leaderboard/runs --out docs/results --readme README.md
+    --force``) makes of leaderboard/runs, here pointed at a copy."""
+    from window_bench.cli import main
+
     monkeypatch.chdir(REPO)
-    pages = build("leaderboard/runs", tmp_path, figures=True)
-    for name in pages:
-        assert (REPO / "docs" / "results" / name).read_bytes() == (tmp_path / name).read_bytes(), \
+    readme = tmp_path / "README.md"
+    readme.write_bytes((REPO / "README.md").read_bytes())
+    assert main(["tables", "--runs", "leaderboard/runs", "--out", str(tmp_path / "results"),
+                 "--readme", str(readme), "--force"]) == 0
+    assert "skipped" not in capsys.readouterr().err     # every committed raw file passes
+    for name in [f"table{t}.md" for t in range(2, 8)] + ["index.md"]:
+        assert (REPO / "docs" / "results" / name).read_bytes() == \
+            (tmp_path / "results" / name).read_bytes(), \
             f"docs/results/{name} differs from bench tables' output: run bench tables"
+    assert readme.read_bytes() == (REPO / "README.md").read_bytes()
 
 
 def test_table7_from_evaluation_cells(tmp_path):
@@ -129,7 +139,7 @@ def test_table7_from_evaluation_cells(tmp_path):
         (ood / f"{d.name}.json").write_text(json.dumps({
             "env_id": "WindowInstall-B-Panel60x60-v0", "seed_set": "test", "episodes": 100,
             "success_rate": k / 100, "cycle_time_s": 25.0, "pr_S": 1.0, "pr_I_given_S": 0.95,
-            "pr_T_given_I": k / 95}))
+            "pr_T_given_I": min(1.0, k / 95)}))
     t7 = build(runs, tmp_path / "out", figures=False)["table7.md"]
     row = next(ln for ln in t7.splitlines() if ln.startswith("| B | 0.6x0.6"))
     assert "**93**" in row and "90 · 96" in row and "| 87 [79, 92] |" in row
@@ -224,3 +234,232 @@ def test_committed_leaderboard_equals_bench_leaderboard(tmp_path, monkeypatch):
     assert (REPO / "docs" / "snippets" / "leaderboard.md").read_bytes() == \
         (tmp_path / "leaderboard.md").read_bytes(), \
         "docs/snippets/leaderboard.md: run bench leaderboard"
+
+
+# ---------------------------------------------------------------------------- hostile files
+def _one_warning(err: str, path) -> str:
+    """The single stderr line that names ``path``; no traceback."""
+    lines = [ln for ln in err.splitlines() if str(path) in ln]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def _edit(d: Path, edit) -> Path:
+    p = d / "results.json"
+    r = json.loads(p.read_text())
+    edit(r)
+    p.write_text(json.dumps(r))
+    return p
+
+
+@pytest.mark.parametrize("edit, reason", [
+    (lambda r: r["final_eval"].update(success_rate=7.5), "final_eval.success_rate: 7.5 is greater"),
+    (lambda r: r["final_eval"].update(episodes=-3), "final_eval.episodes: -3 is less than"),
+    (lambda r: r["final_eval"].update(successes=130), "successes 130 > episodes 100"),
+    (lambda r: r["final_eval"].update(success_rate=0.5), "success_rate 0.5 is not successes"),
+    (lambda r: r["final_eval"].update(pr_S=-0.5), "final_eval.pr_S: -0.5"),
+    (lambda r: r["final_eval"].update(seeds=[100000, 100099]), "seeds [100000, 100099] are not"),
+    (lambda r: r["method"].update(label="<script>alert(1)</script>"), "method.label"),
+    (lambda r: r["method"].update(h="<b>"), "method.h"),
+    (lambda r: r["train_episodes"].append({"steps": 0, "success": True}), "steps: 0 is less"),
+    (lambda r: (r.pop("final_eval"), r.update(checkpoints=[])), "no final_eval"),
+])
+def test_a_bad_results_file_is_skipped_with_one_line_and_not_rendered(tmp_path, capsys, edit,
+                                                                      reason):
+    runs = tmp_path / "runs"
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.8)
+    bad = _edit(_results(runs, "qcfql", "WindowInstall-A-v0", 1, 0.9), edit)
+    pages = build(runs, tmp_path / "out", figures=False)
+    line = _one_warning(capsys.readouterr().err, bad)
+    assert line.startswith(f"warning: skipped: {bad}: ") and reason in line
+    row = next(ln for ln in pages["table2.md"].splitlines() if ln.startswith("| Ours (complete"))
+    assert "| 1 |" in row and "**80**" in row            # the good seed alone
+    assert "qcfql-smoke-test-s1" not in pages["table2.md"]
+    text = "".join(pages.values())
+    assert "750" not in text and "M = -3" not in text and "<script>" not in text
+
+
+@pytest.mark.parametrize("raw, reason", [
+    ('{"seed": NaN}', "NaN is not a number JSON allows"),
+    ('{"seed": Infinity}', "Infinity is not a number JSON allows"),
+    ('{"seed": 1e400}', "1e400 overflows a float"),
+    ("not json", "not readable JSON"),
+])
+def test_nan_infinity_and_non_json_are_refused(tmp_path, capsys, raw, reason):
+    runs = tmp_path / "runs"
+    d = _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.8)
+    (d / "results.json").write_text(raw)
+    assert load_runs(runs) == {}
+    assert reason in _one_warning(capsys.readouterr().err, d / "results.json")
+
+
+def test_an_oversize_file_is_refused_before_it_is_read(tmp_path, capsys, monkeypatch):
+    from window_bench.harness.schemas import MAX_JSON_BYTES
+
+    runs = tmp_path / "runs"
+    d = _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.8)
+    with open(d / "results.json", "r+b") as f:       # sparse: no disk, no time
+        f.truncate(MAX_JSON_BYTES + 1)
+    monkeypatch.setattr(Path, "read_text", lambda *a, **k: pytest.fail("read whole"))
+    monkeypatch.setattr(Path, "read_bytes", lambda *a, **k: pytest.fail("read whole"))
+    assert load_runs(runs) == {}
+    assert f"{MAX_JSON_BYTES + 1:,} bytes, over the" in _one_warning(capsys.readouterr().err,
+                                                                     d / "results.json")
+
+
+def test_a_directory_name_that_would_break_the_page_is_skipped(tmp_path, capsys):
+    runs = tmp_path / "runs"
+    d = _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.8)
+    odd = d.rename(d.parent / "x`<img src=x>")
+    assert load_runs(runs) == {}
+    assert "is not one safe name" in _one_warning(capsys.readouterr().err, odd)
+
+
+def _ood(runs: Path, train: Path, **fields) -> Path:
+    env = "WindowInstall-B-Panel60x60-v0"
+    (runs / env).mkdir(exist_ok=True)
+    p = runs / env / f"{train.name}.json"
+    p.write_text(json.dumps({"env_id": env, "method": "qcfql", "seed_set": "test",
+                             "episodes": 100, "successes": 90, "success_rate": 0.9,
+                             "wilson95": [0.8, 0.95], "cycle_time_s": 25.0, "pr_S": 1.0,
+                             "pr_I_given_S": 0.95, "pr_T_given_I": 0.94,
+                             "eval_seeds": [500000, 500099], **fields}))
+    return p
+
+
+@pytest.mark.parametrize("fields, reason", [
+    ({"success_rate": 7.5}, "success_rate: 7.5 is greater than the maximum of 1"),
+    ({"episodes": -3}, "episodes: -3 is less than the minimum of 1"),
+    ({"successes": 900}, "successes 900 > episodes 100"),
+    ({"cycle_time_s": -200.0}, "cycle_time_s: -200.0"),
+    ({"env_id": "WindowInstall-B-Panel40x40-v0"}, "env_id 'WindowInstall-B-Panel40x40-v0'"),
+    ({"method": "sac"}, "method 'sac', its training cell's is 'qcfql'"),
+    ({"env_kwargs": {"clearance": 0.008}}, "is not a table entry"),
+    ({"eval_seeds": [100000, 100099]}, "are not the 100 'test' seeds"),
+    (None, "not readable JSON"),
+    ("nan", "NaN is not a number JSON allows"),
+])
+def test_a_bad_table7_evaluation_is_skipped_with_one_line_and_not_rendered(tmp_path, capsys,
+                                                                          fields, reason):
+    runs = tmp_path / "runs"
+    _ood(runs, _results(runs, "qcfql", "WindowInstall-B-v0", 0, 1.0))
+    train = _results(runs, "qcfql", "WindowInstall-B-v0", 1, 1.0)
+    bad = _ood(runs, train, **(fields if isinstance(fields, dict) else {}))
+    if fields is None:
+        bad.write_text("{not json")
+    elif fields == "nan":
+        bad.write_text(bad.read_text().replace('"cycle_time_s": 25.0', '"cycle_time_s": NaN'))
+    t7 = build(runs, tmp_path / "out", figures=False)["table7.md"]
+    line = _one_warning(capsys.readouterr().err, bad)
+    assert line.startswith(f"warning: skipped: {bad}: ") and reason in line
+    row = next(ln for ln in t7.splitlines() if ln.startswith("| B | 0.6x0.6"))
+    assert "| 1 | **90** |" in row                        # seed 0's evaluation alone
+    assert "750" not in t7 and "nan" not in t7 and "-200" not in t7
+
+
+def test_strings_from_files_are_escaped_in_markdown():
+    from window_bench.harness.schemas import md_text
+
+    assert md_text("Ours (w/o warm-start)") == "Ours (w/o warm-start)"
+    assert md_text("<script>a|b`c</script>\n[x](javascript:y) & z") == \
+        ("&lt;script&gt;a&#124;b&#96;c&lt;/script&gt; &#91;x&#93;(javascript:y) &amp; z")
+
+
+def test_the_leaderboard_skips_a_script_label_and_writes_only_where_told(tmp_path, capsys,
+                                                                         monkeypatch):
+    from window_bench.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    runs = tmp_path / "runs"
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.8)
+    bad = _edit(_results(runs, "qcfql", "WindowInstall-A-v0", 1, 0.9),
+                lambda r: r["method"].update(label="<script>alert(1)</script>"))
+    before = sorted(p for p in tmp_path.rglob("*"))
+    assert main(["leaderboard", "--root", "runs"]) == 0
+    out, err = capsys.readouterr()
+    assert "<script>" not in out and "| 0 | 80 [" in out and "| 1 |" not in out
+    assert _one_warning(err, "runs/WindowInstall-A-v0/qcfql-smoke-test-s1").startswith("skipped")
+    assert sorted(tmp_path.rglob("*")) == before         # no README, no snippet by default
+    assert bad.is_file()
+    assert main(["leaderboard", "--root", "runs", "--readme", "lb/README.md",
+                 "--snippet", "lb/snippet.md"]) == 0
+    assert sorted(p.name for p in (tmp_path / "lb").iterdir()) == ["README.md", "snippet.md"]
+    capsys.readouterr()
+    assert main(["leaderboard", "--root", "runs", "--readme", "lb/README.md"]) == 2
+    assert capsys.readouterr().err == "error: lb/README.md exists; pass --force to overwrite it\n"
+    assert main(["leaderboard", "--root", "runs", "--readme", "lb/README.md", "--force"]) == 0
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["leaderboard", "--root", "afile"], "argument --root: afile is a file, not a directory"),
+    (["leaderboard", "--root", "afile/runs", "--add", "x"],
+     "argument --root: afile/runs: afile is a file, not a directory"),
+    (["leaderboard", "--root", "none"], "error: --root none: no such directory"),
+    (["tables", "--runs", "afile", "--out", "o"], "argument --runs: afile is a file"),
+    (["tables", "--runs", "runs", "--out", "afile"], "argument --out: afile: a file, not a dir"),
+    (["tables", "--runs", "runs"], "the following arguments are required: --out"),
+    (["tables", "--runs", "runs", "--out", "o", "--readme", "afile"],
+     "error: --readme afile: not a file with the headline markers"),
+    (["tables", "--runs", "runs", "--out", "o", "--readme", "none.md"],
+     "error: --readme none.md: not a file with the headline markers"),
+])
+def test_bad_paths_of_leaderboard_and_tables_are_one_line_and_exit_2(tmp_path, capsys,
+                                                                     monkeypatch, argv, message):
+    from window_bench.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    _results(tmp_path / "runs", "qcfql", "WindowInstall-A-v0", 0, 0.8)
+    before = sorted(tmp_path.rglob("*"))
+    try:
+        rc = main(argv)
+    except SystemExit as e:
+        rc = e.code
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and err.count("\n") == 1, err
+    assert sorted(tmp_path.rglob("*")) == before
+
+
+def test_tables_write_only_under_out_and_never_overwrite_without_force(tmp_path, capsys,
+                                                                      monkeypatch):
+    from window_bench.cli import main
+    from window_bench.harness.tables import HEADLINE_END, HEADLINE_START
+
+    monkeypatch.chdir(tmp_path)
+    _results(tmp_path / "runs", "qcfql", "WindowInstall-A-v0", 0, 0.8)
+    readme = tmp_path / "README.md"
+    readme.write_text(f"intro\n{HEADLINE_START}\nold\n{HEADLINE_END}\n")
+    assert main(["tables", "--runs", "runs", "--out", "o", "--no-figures"]) == 0
+    assert readme.read_text().count("old") == 1       # no --readme: not touched
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")
+                  if "runs" not in p.parts) == ["README.md", "o"] + \
+        [f"o/{n}" for n in ("index.md", *(f"table{t}.md" for t in range(2, 8)))]
+    (tmp_path / "o" / "table2.md").write_text("mine")
+    capsys.readouterr()
+    assert main(["tables", "--runs", "runs", "--out", "o", "--no-figures"]) == 2
+    assert capsys.readouterr().err.startswith("error: o/table")
+    assert (tmp_path / "o" / "table2.md").read_text() == "mine"
+    assert main(["tables", "--runs", "runs", "--out", "o2", "--no-figures", "--readme",
+                 "README.md"]) == 2                     # the README is an existing file too
+    assert not (tmp_path / "o2").exists() and "old" in readme.read_text()
+    assert main(["tables", "--runs", "runs", "--out", "o", "--no-figures", "--readme",
+                 "README.md", "--force"]) == 0
+    assert (tmp_path / "o" / "table2.md").read_text() != "mine" and "old" not in readme.read_text()
+
+
+def test_leaderboard_add_never_replaces_a_run_without_force(tmp_path, capsys, monkeypatch):
+    from window_bench.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    run = _results(tmp_path / "src", "qcfql", "WindowInstall-A-v0", 0, 0.8)
+    assert main(["leaderboard", "--add", str(run), "--root", "lb"]) == 0
+    dest = tmp_path / "lb" / "WindowInstall-A-v0" / "qcfql-smoke-s0" / "results.json"
+    dest.write_text(dest.read_text().replace('"seed": 0', '"seed": 0 '))
+    kept = dest.read_text()
+    capsys.readouterr()
+    assert main(["leaderboard", "--add", str(run), "--root", "lb"]) == 2
+    assert capsys.readouterr().err == f"error: {dest.relative_to(tmp_path)} exists; pass " \
+                                      f"--force to overwrite it\n"
+    assert dest.read_text() == kept
+    assert main(["leaderboard", "--add", str(run), "--root", "lb", "--force"]) == 0
+    assert dest.read_text() == (run / "results.json").read_text()

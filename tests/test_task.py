@@ -101,7 +101,7 @@ def _release_if_held(env):
 
 @pytest.mark.parametrize("env_id", window_bench.ENV_IDS)
 def test_seated_and_latched_is_accepted(env_id, make_env):
-    env = make_env(env_id)
+    env = make_env(env_id, info_strings=True)
     _release_if_held(env)
     _place_seated(env)
     obs, reward, terminated, truncated, info = env.step(HOLD)
@@ -153,7 +153,7 @@ def _run_to_horizon(env, actions):
 
 
 def test_env_labels_never_acquired():
-    env = WindowInstallEnv(experiment="B", max_episode_steps=3)
+    env = WindowInstallEnv(experiment="B", max_episode_steps=3, info_strings=True)
     env.reset(seed=0)
     term, trunc, info = _run_to_horizon(env, [IDLE] * 3)
     assert trunc and not term
@@ -162,7 +162,7 @@ def test_env_labels_never_acquired():
 
 
 def test_env_labels_approach_failed_and_suction_lost():
-    env = WindowInstallEnv(experiment="A", max_episode_steps=3)
+    env = WindowInstallEnv(experiment="A", max_episode_steps=3, info_strings=True)
     env.reset(seed=0)
     term, trunc, info = _run_to_horizon(env, [HOLD] * 3)
     assert trunc and info["failure_mode"] == "approach_failed"
@@ -173,7 +173,7 @@ def test_env_labels_approach_failed_and_suction_lost():
 
 
 def test_failure_label_with_make_max_episode_steps(make_env):
-    env = make_env("WindowInstall-B-v0", max_episode_steps=3)
+    env = make_env("WindowInstall-B-v0", max_episode_steps=3, info_strings=True)
     env.reset(seed=0)
     term, trunc, info = _run_to_horizon(env, [IDLE] * 3)
     assert trunc and info.get("failure_mode") == "never_acquired"

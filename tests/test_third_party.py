@@ -1,10 +1,16 @@
 """The env and our datasets through code that no one here wrote: copy/pickle, SB3's
-subprocess vector env, Gymnasium's async vector env and RecordVideo, TorchRL's batched
-GymEnv and a collector, Minari's load / recover / replay. Kept small (about a minute):
-each path is exercised for a few steps, not trained."""
+subprocess vector env, Gymnasium's async vector env, RecordVideo and env checker, TorchRL's
+batched GymEnv and a collector, Minari's load / recover / replay. Kept small (about two
+minutes): each path is exercised for a few steps, not trained. Where the way a user's script
+is laid out matters (spawned workers, no display), the recipe runs as a script of its own."""
 
 import copy
+import json
+import os
 import pickle
+import subprocess
+import sys
+import textwrap
 
 import cloudpickle
 import gymnasium as gym
@@ -12,7 +18,25 @@ import numpy as np
 import pytest
 
 import window_bench  # noqa: F401  (registers the ids)
+from window_bench.gl import choose_headless_backend
 from window_bench.installer.scripted import ScriptedInstaller
+
+# What a fresh shell on a machine without a display has: no backend chosen, no display.
+HEADLESS_ENV = {k: v for k, v in os.environ.items()
+                if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM", "DISPLAY", "WAYLAND_DISPLAY")}
+
+
+def _run(tmp_path, args, env=None, timeout=300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, *args], capture_output=True, text=True,
+                          cwd=tmp_path, env=env, timeout=timeout)
+
+
+def _run_script(tmp_path, source: str, env=None) -> dict:
+    """Run ``source`` as a user's script file; it prints one JSON line last."""
+    (tmp_path / "script.py").write_text(textwrap.dedent(source))
+    out = _run(tmp_path, ["script.py"], env=env)
+    assert out.returncode == 0, out.stderr[-4000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def _same(a, b) -> bool:
@@ -73,7 +97,7 @@ def test_info_codes_match_the_labels():
     from window_bench.envs.env import SUCTION_LOSS_NAMES
     from window_bench.envs.task import FAILURE_MODE_NAMES, STAGES
 
-    env = gym.make("WindowInstall-B-v0")
+    env = gym.make("WindowInstall-B-v0", info_strings=True)
     _, info = env.reset(seed=0)
     assert (info["failure_code"], info["stage"], info["suction_loss_code"]) == (0, 0, 0)
     seen = set()
@@ -97,38 +121,57 @@ def test_info_codes_match_the_labels():
     env.close()
 
 
-def test_info_strings_false_gives_numbers_only():
-    env = gym.make("WindowInstall-A-v0", info_strings=False)
+def test_info_holds_numbers_unless_strings_are_asked_for():
+    env = gym.make("WindowInstall-A-v0")
     _, info = env.reset(seed=0)
     infos = [info] + [env.step(env.action_space.sample())[4] for _ in range(3)]
     for i in infos:
         assert "failure_mode" not in i and "suction_loss" not in i
         assert all(isinstance(v, (bool, int, float)) for k, v in i.items() if k != "randomization")
+    labelled = gym.make("WindowInstall-A-v0", info_strings=True)
+    _, info = labelled.reset(seed=0)
+    assert info["failure_mode"] == "" and info["suction_loss"] == ""
+    assert set(info) == set(infos[0]) | {"failure_mode", "suction_loss"}
     with pytest.raises(ValueError, match="info_strings='no'"):
         gym.make("WindowInstall-A-v0", info_strings="no")
     env.close()
+    labelled.close()
 
 
-def test_torchrl_batched_gymenv_and_collector():
-    """TorchRL's batched GymEnv records every info key; with info_strings=False they are all
-    numbers, so it builds, rolls out and feeds a collector with success and failure codes."""
-    torch = pytest.importorskip("torch")
-    from torchrl.collectors import Collector
-    from torchrl.envs import GymEnv
+def test_torchrl_batched_gymenv_as_typed(tmp_path):
+    """TorchRL's batched GymEnv records every info key, so every one must be a number: with
+    no extra argument it builds, rolls out and feeds a collector with success and failure
+    codes. Its workers are spawned, so the script imports window_bench at the top, as the
+    recipe does."""
+    pytest.importorskip("torchrl")
+    r = _run_script(tmp_path, """
+        import json
+        import torch
+        import window_bench
+        from torchrl.collectors import Collector
+        from torchrl.envs import GymEnv
 
-    torch.set_num_threads(1)
-    env = GymEnv("window_bench:WindowInstall-B-v0", num_envs=2, info_strings=False)
-    assert tuple(env.batch_size) == (2,)
-    collector = Collector(env, policy=None, frames_per_batch=8, total_frames=16)
-    batches = list(collector)
-    collector.shutdown()
-    assert len(batches) == 2
-    for b in batches:
-        assert b.batch_size == (2, 4)
-        assert b["next", "is_success"].dtype == torch.bool
-        # Random actions in B: the vacuum engages only by chance, far from the panel.
-        assert set(b["next", "failure_code"].unique().tolist()) <= {1}
-    env.close()
+        if __name__ == "__main__":
+            torch.set_num_threads(1)
+            env = GymEnv("WindowInstall-B-v0", num_envs=2)
+            td = env.rollout(3)
+            collector = Collector(env, policy=None, frames_per_batch=8, total_frames=16)
+            batches = list(collector)
+            collector.shutdown()
+            env.close()
+            print(json.dumps({
+                "batch": list(env.batch_size), "rollout": list(td.batch_size),
+                "stage": td["next", "stage"].tolist(),
+                "batches": [list(b.batch_size) for b in batches],
+                "success_dtype": str(batches[0]["next", "is_success"].dtype),
+                "failure_codes": sorted({c for b in batches
+                                         for c in b["next", "failure_code"].unique().tolist()})}))
+        """)
+    assert r["batch"] == [2] and r["rollout"] == [2, 3]
+    assert r["stage"] == [[0, 0, 0], [0, 0, 0]]   # B: the panel starts on the ground
+    assert r["batches"] == [[2, 4], [2, 4]] and r["success_dtype"] == "torch.bool"
+    # Random actions in B: the vacuum engages only by chance, far from the panel.
+    assert set(r["failure_codes"]) <= {1}
 
 
 def test_torchrl_single_env_info_reader():
@@ -177,21 +220,33 @@ def test_minari_load_recover_and_replay(tmp_path, monkeypatch):
     env.close()
 
 
-def test_sb3_subproc_vec_env():
-    from stable_baselines3.common.env_util import make_vec_env
-    from stable_baselines3.common.vec_env import SubprocVecEnv
+def test_sb3_subproc_vec_env_whatever_the_import_placement(tmp_path):
+    """Workers start in fresh interpreters (forkserver) that never run the script's
+    ``__main__`` block, so only the ``window_bench:`` form of the id registers there."""
+    r = _run_script(tmp_path, """
+        import json
+        import numpy as np
+        from stable_baselines3.common.env_util import make_vec_env
+        from stable_baselines3.common.vec_env import SubprocVecEnv
 
-    venv = make_vec_env("window_bench:WindowInstall-B-v0", n_envs=2, seed=0,
-                        vec_env_cls=SubprocVecEnv, env_kwargs={"obs_mode": "flat"})
-    obs = venv.reset()
-    assert obs.shape == (2, 52) and obs.dtype == np.float32
-    for _ in range(3):
-        obs, rewards, dones, infos = venv.step(np.zeros((2, 7), np.float32))
-    assert obs.shape == (2, 52) and rewards.shape == (2,)
-    assert [i["failure_mode"] for i in infos] == ["never_acquired"] * 2
-    # The two workers run different seeds: different panel poses.
-    assert not np.array_equal(obs[0], obs[1])
-    venv.close()
+        if __name__ == "__main__":
+            import window_bench  # noqa: F401  (too late for the workers)
+
+            venv = make_vec_env("window_bench:WindowInstall-B-v0", n_envs=2, seed=0,
+                                vec_env_cls=SubprocVecEnv,
+                                env_kwargs={"obs_mode": "flat", "info_strings": True})
+            obs = venv.reset()
+            for _ in range(3):
+                obs, rewards, dones, infos = venv.step(np.zeros((2, 7), np.float32))
+            venv.close()
+            print(json.dumps({"obs": list(obs.shape), "dtype": str(obs.dtype),
+                              "rewards": list(rewards.shape),
+                              "modes": [i["failure_mode"] for i in infos],
+                              "same_obs": bool(np.array_equal(obs[0], obs[1]))}))
+        """)
+    assert r["obs"] == [2, 52] and r["dtype"] == "float32" and r["rewards"] == [2]
+    assert r["modes"] == ["never_acquired"] * 2
+    assert not r["same_obs"], "the two workers run different seeds: different panel poses"
 
 
 def test_gymnasium_async_vector_env_and_record_video(tmp_path):
@@ -234,10 +289,67 @@ def test_bench_video_writes_an_mp4_per_episode(tmp_path, capsys):
     # One frame per step plus the reset; wrist 64 + overview 86 px wide, padded to 16s.
     assert len(frames) == rows[0]["steps"] + 1 == rows[0]["frames"]
     assert frames[0].shape == (64, 160, 3)
-    assert main(["video", "--size", "10", "--out", str(tmp_path)]) == 2
+    fresh = str(tmp_path / "fresh")   # so that only the bad argument is wrong
+    assert main(["video", "--size", "10", "--out", fresh]) == 2
     assert "size 10 px is outside [64, 480]" in capsys.readouterr().err
     # A file that is not a policy file (read without unpickling): one line, exit 2.
-    assert main(["video", "--policy", str(tmp_path / "videos.json"), "--out", str(tmp_path)]) == 2
+    assert main(["video", "--policy", str(tmp_path / "videos.json"), "--out", fresh]) == 2
     assert "videos.json: not a window-bench policy file" in capsys.readouterr().err
-    assert main(["video", "--policy", "magic", "--out", str(tmp_path)]) == 2
+    assert main(["video", "--policy", "magic", "--out", fresh]) == 2
     assert "neither a controller" in capsys.readouterr().err
+
+
+def test_headless_backend_is_chosen_only_when_unset():
+    libs = {"EGL": "libEGL.so.1", "OSMesa": "libOSMesa.so.8"}
+    for found, want in (({"EGL", "OSMesa"}, "egl"), ({"OSMesa"}, "osmesa"), (set(), None)):
+        env = {}
+        chosen = choose_headless_backend(env, lambda lib: libs[lib] if lib in found else None)
+        assert chosen == want and env.get("MUJOCO_GL") == want
+    for preset in ({"MUJOCO_GL": "osmesa"}, {"DISPLAY": ":0"}):
+        env = dict(preset)
+        assert choose_headless_backend(env, lambda lib: "found") is None and env == preset
+
+
+def test_check_env_renders_without_mujoco_gl(tmp_path):
+    """Gymnasium's env checker renders every declared render mode; on a machine without a
+    display and with MUJOCO_GL unset that aborted the process before window_bench chose a
+    headless backend on import."""
+    r = _run_script(tmp_path, """
+        import json, os
+        import gymnasium as gym
+        from gymnasium.utils.env_checker import check_env
+        import window_bench
+
+        for env_id in ("WindowInstall-A-v0", "WindowInstall-B-v0"):
+            check_env(gym.make(env_id).unwrapped)
+        print(json.dumps({"MUJOCO_GL": os.environ.get("MUJOCO_GL")}))
+        """, env=HEADLESS_ENV)
+    assert r["MUJOCO_GL"] in ("egl", "osmesa")
+
+
+def test_bench_video_without_mujoco_gl(tmp_path):
+    pytest.importorskip("imageio_ffmpeg")
+    out = _run(tmp_path, ["-m", "window_bench.cli", "video", "--env", "WindowInstall-A-v0",
+                          "--seed", "3", "--size", "64", "--cameras", "wrist",
+                          "--out", str(tmp_path / "v")], env=HEADLESS_ENV)
+    assert out.returncode == 0, out.stderr[-4000:]
+    assert "seed 3: seated after" in out.stdout
+    videos = list((tmp_path / "v").glob("*.mp4"))
+    assert len(videos) == 1 and videos[0].stat().st_size > 1000
+
+
+def test_no_opengl_is_one_clear_error(tmp_path):
+    """Neither EGL nor OSMesa installed and no display: one line and exit 2 (as encoder
+    train and teleop), not an abort."""
+    out = _run(tmp_path, ["-c", "import ctypes.util, sys; ctypes.util.find_library = "
+                          "lambda name: None; from window_bench.cli import main; "
+                          "sys.exit(main(sys.argv[1:]))", "video", "--size", "64",
+                          "--cameras", "wrist", "--out", str(tmp_path / "v")],
+               env=HEADLESS_ENV)
+    assert out.returncode == 2, out.stderr[-4000:]
+    # Above it only the progress bar.
+    assert "Traceback" not in out.stderr and out.stderr.strip().splitlines()[-1] == (
+        "error: cannot render: no display (DISPLAY is unset) and no EGL or OSMesa library "
+        "was found (Debian: apt-get install libegl1 or libosmesa6), or set MUJOCO_GL to a "
+        "backend that works here")
+    assert not list((tmp_path / "v").glob("*.mp4"))

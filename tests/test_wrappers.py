@@ -152,7 +152,7 @@ def test_env_switched_back_to_terminating_is_an_error(make_env):
 
 # ----------------------------------------------------------------------------- the env keyword
 def test_env_without_termination_runs_past_acceptance(make_env):
-    env = make_env(A, obs_mode="flat", terminate_on_acceptance=False)
+    env = make_env(A, obs_mode="flat", terminate_on_acceptance=False, info_strings=True)
     assert env.unwrapped.terminate_on_acceptance is False
     run = _rollout(env, seed=0, hold_after_acceptance=True, max_steps=130)
     infos = run["info"]

@@ -16,8 +16,12 @@ available here too; they are loaded on first use so that ``import window_bench``
 
 from importlib import import_module
 
+from window_bench.gl import choose_headless_backend
 
-from gymnasium.envs.registration import register, registry
+# Before anything imports mujoco, which reads MUJOCO_GL once (see window_bench/gl.py).
+choose_headless_backend()
+
+from gymnasium.envs.registration import register, registry  # noqa: E402
 
 __version__ = "0.1.0"
 

@@ -10,7 +10,7 @@
     bench eval runs/x/policies/step_0000400.safetensors --episodes 20
     bench leaderboard --add runs/x                             # tables from raw run files
     bench sweep experiments/table2.toml --out leaderboard/runs # a grid of runs on Ray
-    bench tables --runs leaderboard/runs --out docs/results    # Tables 2-7, Figs. 10/11
+    bench tables --runs leaderboard/runs --out results         # Tables 2-7, Figs. 10/11
     bench encoder train --out enc.safetensors                  # pixel track: in-domain backbone
 """
 
@@ -25,6 +25,7 @@ from pathlib import Path
 import window_bench
 
 from window_bench.harness.evaluation import atomic_write_text, evaluate, provenance, summarize
+from window_bench.harness.seeds import MAX_SEED
 from window_bench.installer.scripted import CONTROLLERS
 
 
@@ -55,8 +56,13 @@ def _int_at_least(lo: int):
     return checked_number(int, lambda v: v >= lo, f">= {lo}")
 
 
+def _int_in(lo: int, hi: int):
+    return checked_number(int, lambda v: lo <= v <= hi, f"in {lo}..{hi}")
+
+
 _positive = _int_at_least(1)
-_seed = _int_at_least(0)
+_seed = _int_in(0, MAX_SEED)
+_workers = _int_in(1, 64)   # evaluation processes: one per core is the most that helps
 
 
 def _clearance_mm(value: str) -> float:
@@ -78,23 +84,40 @@ def _out_file(value: str) -> str:
     """A file this user can create: checked before any work, not after it."""
     from window_bench.harness.files import check_out_dir
 
-    if Path(value).is_dir():
-        raise argparse.ArgumentTypeError(f"{value} is a directory; give a file name")
     try:
         check_out_dir(Path(value).parent)
+        is_dir = Path(value).is_dir()
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e).removeprefix("--out ")) from None
+    except OSError as e:   # e.g. a name longer than the file system allows
+        raise argparse.ArgumentTypeError(f"{value}: cannot be used ({e.strerror})") from None
+    if is_dir:
+        raise argparse.ArgumentTypeError(f"{value} is a directory; give a file name")
     return value
 
 
-def _out_dir(value: str) -> str:
-    from window_bench.harness.files import check_out_dir
+def _writable_dir(option: str):
+    """An argparse type: a directory this user can write into or create (``option`` is how
+    the error names it)."""
+    def parse(value: str) -> str:
+        from window_bench.harness.files import check_out_dir
 
-    try:
-        check_out_dir(value)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e).removeprefix("--out ")) from None
-    return value
+        try:
+            check_out_dir(value, option)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e).removeprefix(f"{option} ")) from None
+        return value
+    return parse
+
+
+_out_dir = _writable_dir("--out")
+
+
+def _add_out_file(p, help: str, required: bool = False) -> None:
+    """``--out FILE`` and ``--force``; :func:`main` refuses an existing FILE without --force."""
+    p.add_argument("--out", type=_out_file, required=required, help=help)
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
+    p.set_defaults(outputs=lambda args: [args.out] if args.out else [])
 
 
 class _Parser(argparse.ArgumentParser):
@@ -199,7 +222,16 @@ def calibration_table(results: dict) -> str:
 
 
 def cmd_calibrate(args) -> int:
+    from window_bench.harness.evaluation import read_rows
+
     out = Path(args.out)
+    try:   # the rows a killed calibration left, all checked before any episode runs
+        for env_id in args.env:
+            for c in args.controllers:
+                read_rows(out / f"{env_id}__{c}.jsonl")
+    except (OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     results: dict = {}
     for env_id in args.env:
         results[env_id] = {}
@@ -287,8 +319,12 @@ def cmd_run(args) -> int:
         noise = None
         if args.acceptance_noise is not None:
             fp, fn, delay = args.acceptance_noise
-            noise = {"false_positive_rate": float(fp), "false_negative_rate": float(fn),
-                     "delay_steps": int(delay), "seed": args.seed}
+            try:
+                noise = {"false_positive_rate": float(fp), "false_negative_rate": float(fn),
+                         "delay_steps": int(delay), "seed": args.seed}
+            except ValueError:
+                raise ValueError(f"--acceptance-noise {fp} {fn} {delay}: expected two rates "
+                                 f"in [0, 1] and a delay in steps (an integer >= 0)") from None
         from window_bench.harness.run import parse_overrides
 
         run = Run(args.method, args.env, args.profile, args.seed, args.out, resume=args.resume,
@@ -340,18 +376,49 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _dir_path(value: str) -> str:
+    """A directory to read, or to create: never a path through an existing file."""
+    probe = Path(value)
+    try:
+        while not probe.exists() and probe != probe.parent:
+            probe = probe.parent
+    except OSError as e:   # e.g. a name longer than the file system allows
+        raise argparse.ArgumentTypeError(f"{value}: cannot be used ({e.strerror})") from None
+    if probe.exists() and not probe.is_dir():
+        where = "" if probe == Path(value) else f": {probe}"
+        raise argparse.ArgumentTypeError(f"{value}{where} is a file, not a directory")
+    return value
+
+
+def _refuse_overwrite(paths, force: bool) -> None:
+    """Outputs are never overwritten unless the user asks (``--force``)."""
+    hit = None if force else next((p for p in paths if Path(p).exists()), None)
+    if hit is not None:
+        raise ValueError(f"{hit} exists; pass --force to overwrite it")
+
+
 def cmd_leaderboard(args) -> int:
+    from window_bench.harness.files import check_out_dir
     from window_bench.harness.leaderboard import add_run, build, check_results, run_dest
 
-    try:   # every run is checked before anything is copied
-        for run_dir in args.add or []:
-            run_dest(check_results(Path(run_dir) / "results.json"), args.root)
+    try:   # every run and every output is checked before anything is written
+        if args.add:
+            try:
+                check_out_dir(args.root)
+            except ValueError as e:
+                raise ValueError(str(e).replace("--out ", "--root ", 1)) from None
+        elif not Path(args.root).is_dir():
+            raise ValueError(f"--root {args.root}: no such directory")
+        dests = [run_dest(check_results(Path(run_dir) / "results.json"), args.root)
+                 for run_dir in args.add or []]
+        _refuse_overwrite([d / "results.json" for d in dests]
+                          + [p for p in (args.readme, args.snippet) if p], args.force)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     for run_dir in args.add or []:
         print(f"added {add_run(run_dir, args.root)}")
-    print(build(args.root))
+    print(build(args.root, readme=args.readme, snippet=args.snippet))
     return 0
 
 
@@ -374,11 +441,14 @@ def cmd_sweep(args) -> int:
                           ("done", "running", "partial", "new", "failed", "conflict")
                           if counts[k]))
         return 0
+    from window_bench.harness.files import check_out_dir
+
     try:
+        check_out_dir(args.out)
         sweep = Sweep(load_grid(args.grid), args.out, workers=args.workers,
                       address=args.address, progress=not args.no_progress,
                       stage1_cache=not args.no_stage1_cache, only=args.only)
-    except GridError as e:
+    except (GridError, ValueError) as e:      # RunFileError (check_out_dir) is a ValueError
         print(f"error: {e}", file=sys.stderr)
         return 2
     try:
@@ -395,10 +465,19 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_tables(args) -> int:
-    from window_bench.harness.tables import build
+    from window_bench.harness.tables import HEADLINE_END, HEADLINE_START, build, outputs
 
-    if not Path(args.runs).is_dir():
-        print(f"error: --runs {args.runs}: no such directory", file=sys.stderr)
+    try:   # every output is checked before anything is read or written
+        if not Path(args.runs).is_dir():
+            raise ValueError(f"--runs {args.runs}: no such directory")
+        if args.readme is not None:
+            text = Path(args.readme).read_text() if Path(args.readme).is_file() else ""
+            if HEADLINE_START not in text or HEADLINE_END not in text:
+                raise ValueError(f"--readme {args.readme}: not a file with the headline "
+                                 f"markers {HEADLINE_START} ... {HEADLINE_END}")
+        _refuse_overwrite(outputs(args.out, not args.no_figures, args.readme), args.force)
+    except (OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
     pages = build(args.runs, args.out, figures=not args.no_figures, readme=args.readme)
     print(f"wrote {', '.join(sorted(pages))}{'' if args.no_figures else ', fig10/fig11 .png/.svg'}"
@@ -407,14 +486,19 @@ def cmd_tables(args) -> int:
 
 
 def cmd_video(args) -> int:
+    from window_bench.gl import NoOpenGLError
     from window_bench.video import check_args, record
 
     try:
         check_args(args.cameras, args.size, args.fps, args.policy)
+        if args.policy not in CONTROLLERS:   # a foreign or damaged file: before --out is made
+            from window_bench.harness.run import load_policy_file
+
+            load_policy_file(args.policy)
         rows = record(args.env, args.policy, list(range(args.seed, args.seed + args.episodes)),
                       args.out, cameras=args.cameras, size=args.size, fps=args.fps)
-    except ValueError as e:
-        print(f"error: {e}", file=sys.stderr)
+    except (ValueError, OSError, NoOpenGLError) as e:   # OSError: e.g. a --policy name too long
+        print(f"error: {e}", file=sys.stderr)              # to look up; as encoder train, teleop: 2
         return 2
     for r in rows:
         outcome = "seated" if r["success"] else r["failure_mode"]
@@ -449,7 +533,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--seed", type=_seed, default=0, help="first episode seed")
     i.add_argument("--controller", choices=sorted(CONTROLLERS), default="installer",
                    help="reference controller")
-    i.add_argument("--out", type=_out_file, help="also write the episodes and summary to this JSON file")
+    _add_out_file(i, "also write the episodes and summary to this JSON file")
     i.set_defaults(func=cmd_install)
     c = sub.add_parser("calibrate", help="difficulty calibration: success and failure modes per controller")
     c.add_argument("--env", type=_env_id, nargs="+", default=["WindowInstall-A-v0", "WindowInstall-B-v0"],
@@ -482,7 +566,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--episodes", type=_positive, default=20, help="episodes per operator")
     v.add_argument("--seed", type=_seed, default=0, help="first episode seed")
     v.add_argument("--h", type=_positive, default=10, help="chunk grid of the supervised policy")
-    v.add_argument("--out", type=_out_file, help="write the rows to this JSON file")
+    _add_out_file(v, "write the rows to this JSON file")
     v.set_defaults(func=cmd_supervise)
     from window_bench.installer.teleop import add_teleop_parser
 
@@ -505,8 +589,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--resume", action="store_true", help="continue the run saved in --out")
     r.add_argument("--operator", choices=sorted(OPERATORS), default="average",
                    help="operator profile for demonstrations and takeovers")
-    r.add_argument("--demos", help="Minari datasets root holding the demonstrations "
-                                   "(None: collect them into OUT/demos)")
+    r.add_argument("--demos", type=_dir_path, help="Minari datasets root holding the "
+                   "demonstrations (None: collect them into OUT/demos)")
     r.add_argument("--acceptance-noise", nargs=3, metavar=("FP", "FN", "DELAY"), default=None,
                    help="train on a noisy acceptance sensor: false-positive rate per step, "
                         "false-negative rate, delay in steps (evaluation keeps true acceptance)")
@@ -519,35 +603,38 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--agent-config", nargs="+", metavar="KEY=VALUE",
                    help="override fields of the agent's config (recorded in the results), "
                         "e.g. act_noise_scale=0.0 alpha=100")
-    from window_bench.harness.seeds import SEED_SETS
+    from window_bench.harness.seeds import MAX_EPISODES, SEED_SETS
 
     r.add_argument("--h", type=_positive, default=None,
                    help="chunk horizon of a QC-FQL method (Tables 5/6; default: the method's)")
-    r.add_argument("--final-episodes", type=_positive, default=None, metavar="M",
+    r.add_argument("--final-episodes", type=_int_in(1, MAX_EPISODES), default=None, metavar="M",
                    help="evaluate the final checkpoint with M fresh rollouts (reported runs: "
                         "100 on the test seeds); default: the last checkpoint's evaluation")
     r.add_argument("--final-seed-set", choices=sorted(SEED_SETS), default="dev",
                    help="seeds of the final evaluation: dev (tuning) or test (reported)")
-    r.add_argument("--stage1-cache", default=None, metavar="DIR",
+    r.add_argument("--stage1-cache", type=_writable_dir("--stage1-cache"), default=None,
+                   metavar="DIR",
                    help="share Stage I with runs of the same agent config, h, demos and seed "
                         "through this cache directory (bench sweep sets it)")
-    r.add_argument("--pixel-demos-cache", default=None, metavar="DIR",
+    r.add_argument("--pixel-demos-cache", type=_writable_dir("--pixel-demos-cache"),
+                   default=None, metavar="DIR",
                    help="--track pixels: keep the demos re-observed under the encoder in this "
                         "cache directory (default: pixel_cache/ in the demos directory)")
-    r.add_argument("--eval-workers", type=_positive, default=None, metavar="N",
-                   help="evaluation processes per checkpoint (default: the profile's; 1 "
+    r.add_argument("--eval-workers", type=_workers, default=None, metavar="N",
+                   help="evaluation processes per checkpoint, 1-64 (default: the profile's; 1 "
                         "evaluates in the training process, so a run uses one core)")
     r.set_defaults(func=cmd_run)
     e = sub.add_parser("eval", help="evaluate a saved policy (interventions off)")
     e.add_argument("checkpoint", help="a policies/step_*.safetensors file of a run")
-    e.add_argument("--episodes", type=_positive, default=100, help="evaluation episodes")
+    e.add_argument("--episodes", type=_int_in(1, MAX_EPISODES), default=100,
+                   help="evaluation episodes")
     e.add_argument("--env", type=_env_id, default=None,
                    help=ENV_HELP + " (None: the env the policy was trained on)")
-    e.add_argument("--out", type=_out_file, help="write the summary to this JSON file")
+    _add_out_file(e, "write the summary to this JSON file")
     e.add_argument("--seed-set", choices=sorted(SEED_SETS), default="dev",
                    help="evaluation seeds: dev (tuning, default) or test (reported numbers)")
-    e.add_argument("--eval-workers", type=_positive, default=2, metavar="N",
-                   help="evaluation processes (1: in this process)")
+    e.add_argument("--eval-workers", type=_workers, default=2, metavar="N",
+                   help="evaluation processes, 1-64 (1: in this process)")
     e.add_argument("--clearance", type=_clearance_mm, default=None, metavar="MM",
                    help="rebuild the opening with this clearance per side, 0.5-20 mm (None: "
                         "the env's 2 mm); a tolerance-sensitivity check, not a table entry")
@@ -555,12 +642,23 @@ def build_parser() -> argparse.ArgumentParser:
     lb = sub.add_parser("leaderboard", help="regenerate the leaderboard from raw run files")
     lb.add_argument("--add", nargs="+", metavar="RUN_DIR", help="first copy these finished "
                                                                 "runs' raw files in")
-    lb.add_argument("--root", default="leaderboard/runs", help="leaderboard runs root")
+    lb.add_argument("--root", type=_dir_path, default="leaderboard/runs",
+                    help="leaderboard runs root")
+    lb.add_argument("--readme", type=_out_file, default=None,
+                    help="also write the leaderboard page to this file (the table is always "
+                         "printed)")
+    lb.add_argument("--snippet", type=_out_file, default=None,
+                    help="also write the table alone to this file, for the docs")
+    lb.add_argument("--force", action="store_true",
+                    help="overwrite --readme and --snippet, and runs already in --root; "
+                         "the committed pages: --readme leaderboard/README.md --snippet "
+                         "docs/snippets/leaderboard.md --force")
     lb.set_defaults(func=cmd_leaderboard)
     sw = sub.add_parser("sweep", help="run a grid of cells (experiments/*.toml) on Ray; "
                                       "finished cells are skipped, partial ones resumed")
     sw.add_argument("grid", help="a grid file, e.g. experiments/table2.toml")
-    sw.add_argument("--out", default="runs/grid", help="runs root: one directory per cell")
+    sw.add_argument("--out", type=_dir_path, default="runs/grid",
+                    help="runs root: one directory per cell; nothing is written outside it")
     sw.add_argument("--workers", type=_positive, default=None,
                     help="cells at a time (None: one per CPU of the Ray cluster)")
     sw.add_argument("--address", default=None,
@@ -579,12 +677,19 @@ def build_parser() -> argparse.ArgumentParser:
     sw.set_defaults(func=cmd_sweep)
     tb = sub.add_parser("tables", help="regenerate the paper's Tables 2-7 and Figs. 10/11 "
                                        "from raw run files")
-    tb.add_argument("--runs", default="leaderboard/runs", help="runs root to read")
-    tb.add_argument("--out", default="docs/results", help="where the pages and figures go")
+    tb.add_argument("--runs", type=_dir_path, default="leaderboard/runs",
+                    help="runs root to read")
+    tb.add_argument("--out", type=_out_dir, required=True,
+                    help="directory for the pages and figures (the committed ones: "
+                         "docs/results)")
     tb.add_argument("--no-figures", action="store_true", help="tables only")
-    tb.add_argument("--readme", default="README.md",
-                    help="also rewrite this file's headline block (between its "
-                         "'<!-- bench tables: headline -->' markers; skipped without them)")
+    tb.add_argument("--readme", default=None,
+                    help="also rewrite this file's headline block, between its "
+                         "'<!-- bench tables: headline -->' markers")
+    tb.add_argument("--force", action="store_true",
+                    help="overwrite existing pages, figures and the --readme block; the "
+                         "committed ones: --runs leaderboard/runs --out docs/results "
+                         "--readme README.md --force")
     tb.set_defaults(func=cmd_tables)
     from window_bench.video import CAMERAS, FPS_RANGE, SIZE_RANGE
 
@@ -592,7 +697,7 @@ def build_parser() -> argparse.ArgumentParser:
                                       "as MP4 (wrist, side and overview cameras)")
     vd.add_argument("--policy", default="installer",
                     help="a reference controller (" + ", ".join(sorted(CONTROLLERS)) + ") or a "
-                         "policies/step_*.pt file of a run")
+                         "policies/step_*.safetensors file of a run")
     vd.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
     vd.add_argument("--seed", type=_seed, default=0, help="first episode seed")
     vd.add_argument("--episodes", type=_positive, default=1, help="episodes, one file each")
@@ -604,7 +709,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"view height in px, {SIZE_RANGE[0]}-{SIZE_RANGE[1]}")
     vd.add_argument("--fps", type=_positive, default=10,
                     help=f"frames per second, {FPS_RANGE[0]}-{FPS_RANGE[1]} (10 = real time)")
-    vd.set_defaults(func=cmd_video)
+    vd.add_argument("--force", action="store_true",
+                    help="record into an --out that already holds videos.json or MP4s, "
+                         "replacing them")
+    # a recording rewrites videos.json and names its MP4s by env, policy and seed
+    vd.set_defaults(func=cmd_video, outputs=lambda args: [Path(args.out) / "videos.json",
+                                                          *sorted(Path(args.out).glob("*.mp4"))])
     return p
 
 
@@ -615,6 +725,12 @@ def main(argv: list[str] | None = None) -> int:
 
     os.environ.setdefault("TORCHRL_CONSOLE_STREAM", "stderr")
     args = build_parser().parse_args(argv)
+    try:   # before any work: a file the command would write is replaced only with --force
+        if "outputs" in args:
+            _refuse_overwrite(args.outputs(args), args.force)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     return args.func(args)
 
 

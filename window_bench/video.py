@@ -16,8 +16,10 @@ import os
 from pathlib import Path
 
 import gymnasium as gym
-import mujoco
 import numpy as np
+
+from window_bench.envs.task import FAILURE_MODE_NAMES
+from window_bench.gl import renderer
 
 # Camera names in the scene, by the short names the command line uses, and the aspect
 # (width / height) each is rendered at.
@@ -60,7 +62,7 @@ class CameraRecorder(gym.Wrapper):
         for cam, h, w in self.views:
             r = self.renderers.get((h, w))
             if r is None:
-                r = self.renderers[(h, w)] = mujoco.Renderer(u.model, h, w)
+                r = self.renderers[(h, w)] = renderer(u.model, h, w)
             r.update_scene(u.data, camera=cam)
             tiles.append(r.render())
         frame = np.concatenate(tiles, axis=1)
@@ -132,7 +134,7 @@ def record(env_id: str, policy: str, seeds: list[int], out: str | os.PathLike,
                     w.append_data(frame)
             os.replace(tmp, path)
             rows.append({"seed": seed, "success": bool(log.terminated[-1]), "steps": log.T,
-                         "failure_mode": info.get("failure_mode") or None,
+                         "failure_mode": FAILURE_MODE_NAMES[info["failure_code"]] or None,
                          "recoveries": getattr(pol, "recoveries", None),
                          "frames": len(env.frames), "file": path.name,
                          "bytes": path.stat().st_size})

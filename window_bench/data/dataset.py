@@ -32,6 +32,12 @@ know is left empty rather than invented.
 
 Writes are atomic: the dataset is built under a temporary dataset id in the same datasets
 directory and then renamed into place with ``os.replace``.
+
+Reads trust no file to name code: Minari builds the env a ``metadata.json`` names (any
+``entry_point``, with the file's ``kwargs``) when a space is missing there, and in
+``recover_environment``. :func:`load_episodes` opens a dataset only when it records both
+spaces and every env spec in it is one of window-bench's registered ids with window-bench's
+entry point; :func:`recover_env` builds that env with window-bench's own registration.
 """
 
 from __future__ import annotations
@@ -134,6 +140,77 @@ def _check_dataset_id(dataset_id: str) -> None:
         parse_dataset_id(dataset_id)
     except (ValueError, TypeError) as e:
         raise ValueError(f"invalid dataset id {dataset_id!r}: {e}") from None
+
+
+def _env_spec(text, where: str) -> dict:
+    """A dataset's recorded env spec (JSON), if it names one of window-bench's own envs with
+    window-bench's own entry point and no extra wrappers; else a one-line ``ValueError``. Such
+    a spec only ever names code that is already ours: an env is never built from a file."""
+    import window_bench
+    from gymnasium.envs.registration import registry
+
+    try:
+        spec = json.loads(text) if isinstance(text, str) else None
+    except ValueError:
+        spec = None
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}: its env spec is not a JSON object")
+    env_id = spec.get("id")
+    ours = registry.get(env_id) if env_id in window_bench.ENV_IDS else None
+    if (ours is None or spec.get("entry_point") != ours.entry_point
+            or spec.get("vector_entry_point") != ours.vector_entry_point
+            or spec.get("additional_wrappers") or not isinstance(spec.get("kwargs"), dict)):
+        raise ValueError(f"{where}: its env spec names env {env_id!r} with entry point "
+                         f"{spec.get('entry_point')!r}; window-bench reads only datasets of its "
+                         f"own envs ({', '.join(window_bench.ENV_IDS)}) with their own entry "
+                         f"point, and never builds an env a file names")
+    return spec
+
+
+def _checked_metadata(path: Path, dataset_id: str) -> dict:
+    """``metadata.json`` of the dataset at ``path``, checked before Minari opens it: Minari
+    builds the env of ``env_spec`` with ``gym.make`` (importing and calling any entry point,
+    with the file's kwargs) when a space is missing, and ``recover_environment`` always
+    does. So both spaces must be recorded, and every env spec must be one of ours."""
+    where = f"dataset {dataset_id!r} at {path}"
+    try:
+        meta = json.loads((path / "data" / _METADATA_FILE).read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{where} is unreadable: {_METADATA_FILE}: "
+                         f"{e.strerror if isinstance(e, OSError) else e}") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{where} is unreadable: {_METADATA_FILE} is not a JSON object")
+    for key in ("observation_space", "action_space"):
+        if not isinstance(meta.get(key), str):
+            raise ValueError(f"{where}: {_METADATA_FILE} records no {key}; window-bench reads "
+                             f"only datasets that record their spaces")
+    for key in ("env_spec", "eval_env_spec"):
+        if meta.get(key) is not None:
+            _env_spec(meta[key], f"{where}, {_METADATA_FILE} {key}")
+    return meta
+
+
+def recover_env(dataset_id: str, data_path: str | os.PathLike | None = None, **kwargs):
+    """The env a dataset was logged in, built by window-bench: its registered id made with
+    the constructor arguments the dataset records (and ``kwargs``), after :func:`_env_spec`
+    checked them. Use it instead of Minari's ``recover_environment``, which imports and calls
+    whatever entry point the file names."""
+    import gymnasium as gym
+
+    with _datasets_root(data_path):
+        from minari.storage.datasets_root_dir import get_dataset_path
+
+        path = Path(get_dataset_path(dataset_id))
+    where = f"dataset {dataset_id!r} at {path}"
+    meta = _checked_metadata(path, dataset_id)
+    if meta.get("env_spec") is None:
+        raise ValueError(f"{where} records no env (it was saved for an unregistered env id)")
+    spec = _env_spec(meta["env_spec"], where)
+    try:
+        return gym.make(spec["id"], **{**spec["kwargs"], **kwargs})
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{where}: its env arguments {spec['kwargs']} are not "
+                         f"{spec['id']}'s ({str(e).splitlines()[0]})") from None
 
 
 def _spaces(obs_dim: int):
@@ -329,6 +406,9 @@ def load_episodes(dataset_id: str, data_path: str | os.PathLike | None = None
         def unreadable(cause):
             return ValueError(f"dataset {dataset_id!r} at {path} is unreadable: {cause}")
 
+        if not path.is_dir():
+            raise unreadable("no such dataset")
+        _checked_metadata(path, dataset_id)   # before Minari: it may build the env it names
         try:
             ds = minari.load_dataset(dataset_id)
             meta = ds.storage.metadata

@@ -16,6 +16,7 @@ from gymnasium import spaces
 from window_bench.envs import scene as S
 from window_bench.envs.controller import OSC, OSCGains, solve_ik
 from window_bench.envs.task import FAILURE_CODES, StageTracker, acceptance
+from window_bench.gl import renderer
 
 POS_SCALE = 0.025         # m per unit action (Appendix)
 ROT_SCALE = 0.0873        # rad per unit action (5 deg)
@@ -123,13 +124,13 @@ class WindowInstallEnv(gym.Env):
     ``window_bench.envs.wrappers.NoisyAcceptance``, which decides reward and termination from a
     noisy acceptance sensor; it sets the attribute ``terminate_on_acceptance`` itself.
 
-    **Info for batched consumers.** Every info value is a number or a bool except the two
-    labels ``failure_mode`` and ``suction_loss`` (strings, for people) and ``randomization``
-    (a dict, at reset only). Their codes stand beside them: ``failure_code``
+    **Info holds numbers.** Every info value is a number or a bool, except ``randomization``
+    (a dict, at reset only), so that code which stacks every info key (TorchRL's batched
+    ``GymEnv``) works as typed. Outcomes are codes: ``failure_code``
     (``task.FAILURE_MODE_NAMES[code]``, 0 = none), ``suction_loss_code``
     (``SUCTION_LOSS_NAMES[code]``), and ``stage``, the furthest stage event reached
-    (``task.STAGES``). ``info_strings=False`` leaves the two strings out, so that code which
-    stacks every info key (TorchRL's batched ``GymEnv``) gets numbers only.
+    (``task.STAGES``). ``info_strings=True`` adds their labels for people, ``failure_mode``
+    and ``suction_loss``.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -139,7 +140,7 @@ class WindowInstallEnv(gym.Env):
                  panel_mass: float | None = None, obs_mode: str = "state",
                  render_mode: str | None = None, image_size: int = 128,
                  max_episode_steps: int = MAX_EPISODE_STEPS,
-                 terminate_on_acceptance: bool = True, info_strings: bool = True):
+                 terminate_on_acceptance: bool = True, info_strings: bool = False):
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode={obs_mode!r}; allowed: {OBS_MODES}")
         if render_mode not in (None, "rgb_array"):
@@ -552,7 +553,7 @@ class WindowInstallEnv(gym.Env):
     # ------------------------------------------------------------------ rendering
     def _render_views(self):
         if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, self.image_size, self.image_size)
+            self._renderer = renderer(self.model, self.image_size, self.image_size)
         out = []
         for cam in ("robot0_wrist", "side"):
             self._renderer.update_scene(self.data, camera=cam)
@@ -567,7 +568,7 @@ class WindowInstallEnv(gym.Env):
         if self.render_mode != "rgb_array":
             return None
         if self._render_renderer is None:
-            self._render_renderer = mujoco.Renderer(self.model, 480, 640)
+            self._render_renderer = renderer(self.model, 480, 640)
         self._render_renderer.update_scene(self.data, camera="overview")
         return self._render_renderer.render().copy()
 

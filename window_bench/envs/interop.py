@@ -3,8 +3,9 @@ TorchRL info-dict reader that puts them into the TensorDict.
 
 TorchRL records no info keys unless told which, and its stock reader expects numpy arrays,
 while a single env returns Python bools and ints. ``torchrl_info_reader()`` converts them.
-A batched ``GymEnv(..., num_envs=N)`` registers a reader for every info key by itself; pass
-``info_strings=False`` there so that every key is a number (see ``docs/third-party.md``).
+A batched ``GymEnv(..., num_envs=N)`` registers a reader for every info key by itself, which
+works because every key is a number unless the env is made with ``info_strings=True`` (see
+``docs/third-party.md``).
 """
 
 from __future__ import annotations

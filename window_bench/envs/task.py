@@ -22,9 +22,9 @@ Failure taxonomy (one label per episode that does not end in acceptance):
 ``sim_unstable``       physics diverged; the episode was truncated.
 =====================  =====================================================================
 
-On every step the env reports in ``info["failure_mode"]`` the label the episode would get
-if it ended there (``""`` once accepted), so the label is right whichever wrapper ends the
-episode; read it on the final step.
+On every step the env reports in ``info["failure_code"]`` the label the episode would get
+if it ended there (``FAILURE_MODE_NAMES[code]``; 0, ``""``, once accepted), so the label is
+right whichever wrapper ends the episode; read it on the final step.
 
 The seated target is the centre of the opening. A panel released onto the sill rests the
 full clearance (2 mm) low and is therefore *not* accepted: like an installer who shims and
@@ -48,9 +48,10 @@ STALL_RATIO = 0.3           # realized / commanded translation below this = stal
 
 FAILURE_MODES = ("never_acquired", "suction_lost", "approach_failed", "entry_wedging",
                  "mid_depth_jamming", "unstable_seating", "timeout", "sim_unstable")
-# Integer codes for batched consumers (vector envs, TensorDicts): ``info["failure_code"]`` is
-# ``FAILURE_CODES[info["failure_mode"]]``, 0 for no failure; ``FAILURE_MODE_NAMES[code]``
-# maps back.
+# Integer codes, so that info holds numbers for batched consumers (vector envs,
+# TensorDicts): ``info["failure_code"]`` is 0 for no failure, ``FAILURE_MODE_NAMES[code]``
+# the label (``info["failure_mode"]`` with ``info_strings=True``), ``FAILURE_CODES`` the
+# reverse.
 FAILURE_MODE_NAMES = ("", *FAILURE_MODES)
 FAILURE_CODES = {name: code for code, name in enumerate(FAILURE_MODE_NAMES)}
 # ``info["stage"]``: the furthest stage event reached this episode, as an index here.

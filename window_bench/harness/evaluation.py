@@ -24,7 +24,7 @@ import numpy as np
 
 from window_bench.installer.scripted import CONTROLLERS
 from window_bench.envs.scene import TORQUE_LIMITS
-from window_bench.envs.task import FAILURE_MODES
+from window_bench.envs.task import FAILURE_MODE_NAMES, FAILURE_MODES
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -113,7 +113,7 @@ def run_episode(env, controller, seed: int) -> dict:
     return {
         "seed": seed, "success": bool(terminated), "steps": steps,
         "cycle_time_s": round(info["cycle_time_s"], 1),
-        "failure_mode": info["failure_mode"] or None,
+        "failure_mode": FAILURE_MODE_NAMES[info["failure_code"]] or None,
         "sim_unstable": bool(info["sim_unstable"]),
         **{f"t_{k}": v for k, v in events.items()},
         "recoveries": getattr(controller, "recoveries", None),
@@ -123,6 +123,11 @@ def run_episode(env, controller, seed: int) -> dict:
         "peak_torque_frac": np.round(u.osc.max_abs_tau / TORQUE_LIMITS, 3).tolist(),
         "randomization": {k: round(v, 6) for k, v in env.unwrapped._randomization.items()},
     }
+
+
+#: What :func:`summarize` reads of a row; a resumed row without them is refused.
+ROW_KEYS = frozenset({"seed", "success", "cycle_time_s", "failure_mode", "t_suction_acquired",
+                      "t_insertion_entered"})
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -148,6 +153,25 @@ def summarize(rows: list[dict]) -> dict:
     }
 
 
+def read_rows(rows_path: str | os.PathLike) -> dict[int, dict]:
+    """The rows a killed :func:`evaluate` already wrote to ``rows_path``, by seed (none when
+    there is no file); a line that parses but is not such a row is a one-line ``ValueError``."""
+    done: dict[int, dict] = {}
+    if not Path(rows_path).exists():
+        return done
+    for i, line in enumerate(Path(rows_path).read_text().splitlines(), 1):
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # a line cut by a kill: that episode is simply run again
+        if not (isinstance(row, dict) and ROW_KEYS <= set(row)
+                and type(row["seed"]) is int and type(row["success"]) is bool):
+            raise ValueError(f"{rows_path}:{i}: not an episode row of this command; remove "
+                             f"the line, or the file, to run that episode again")
+        done[row["seed"]] = row
+    return done
+
+
 def evaluate(env_id: str, controller: str, episodes: int, seed: int = 0,
              rows_path: str | os.PathLike | None = None, progress: bool = True,
              env_kwargs: dict | None = None) -> list[dict]:
@@ -159,14 +183,7 @@ def evaluate(env_id: str, controller: str, episodes: int, seed: int = 0,
         raise ValueError(f"controller={controller!r}; allowed: {sorted(CONTROLLERS)}")
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    done: dict[int, dict] = {}
-    if rows_path is not None and Path(rows_path).exists():
-        for line in Path(rows_path).read_text().splitlines():
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError:
-                continue  # a line cut by a kill: that episode is simply run again
-            done[row["seed"]] = row
+    done = read_rows(rows_path) if rows_path is not None else {}
     env = gym.make(env_id, **(env_kwargs or {}))
     ctrl = CONTROLLERS[controller](env)
     commit = git_commit()

@@ -187,11 +187,12 @@ def parse_state(data: bytes, path, kind: str):
 
 def read_bytes(path) -> bytes:
     path = Path(path)
-    if not path.is_file():
-        raise RunFileError(f"{path}: no such file")
     try:
+        if not path.is_file():
+            why = "a directory, not a file" if path.is_dir() else "no such file"
+            raise RunFileError(f"{path}: {why}")
         return path.read_bytes()
-    except OSError as e:
+    except OSError as e:   # unreadable, or a name longer than the file system allows
         raise RunFileError(f"{path}: cannot be read ({e.strerror})") from None
 
 
@@ -311,19 +312,25 @@ def state_counters(path) -> dict | None:
     return counters if isinstance(counters, dict) else None
 
 
-def check_out_dir(out) -> Path:
-    """``out`` must be a directory or creatable as one by this user; nothing is written."""
+def check_out_dir(out, option: str = "--out") -> Path:
+    """``out`` (the value of ``option``) must be a directory or creatable as one by this user;
+    nothing is written."""
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise RunFileError(f"--out {out}: a file, not a directory; choose a directory")
-    probe = out
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir():
-        raise RunFileError(f"--out {out}: {probe} is a file, not a directory")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise RunFileError(f"--out {out}: {probe} is not writable by this user; choose "
-                           f"another --out")
+    try:   # a name too long, a loop of links: refused here, not raised from a later mkdir
+        if out.exists() and not out.is_dir():
+            raise RunFileError(f"{option} {out}: a file, not a directory; choose a directory")
+        probe = out
+        while not probe.exists():
+            probe = probe.parent
+        if not probe.is_dir():
+            raise RunFileError(f"{option} {out}: {probe} is a file, not a directory")
+        writable = os.access(probe, os.W_OK | os.X_OK)
+    except OSError as e:
+        raise RunFileError(f"{option} {out}: cannot be used ({e.strerror}); choose another "
+                           f"{option}") from None
+    if not writable:
+        raise RunFileError(f"{option} {out}: {probe} is not writable by this user; choose "
+                           f"another {option}")
     return out
 
 
@@ -432,6 +439,16 @@ class RunDir:
                 self.manifest["files"][p.relative_to(self.path).as_posix()] = {
                     "sha256": sha256_file(p), "bytes": p.stat().st_size}
         self._write_manifest()
+
+    def check_listed(self, folder) -> None:
+        """Every file under ``folder`` (relative) is listed in the manifest, so that
+        :func:`verify_files` checked it: a file added there after the run wrote it (a dataset
+        whose metadata names code, say) is refused before anything reads it."""
+        for p in sorted((self.path / folder).rglob("*")):
+            name = p.relative_to(self.path).as_posix()
+            if (p.is_file() or p.is_symlink()) and name not in self.manifest["files"]:
+                raise RunFileError(f"{p}: not listed in {self.path / MANIFEST}, so it was not "
+                                   f"written by this run; remove it or restore the run")
 
     def read_state(self, name: str, kind: str):
         """``(tree, meta)`` of a listed state file, after checking it against the manifest."""

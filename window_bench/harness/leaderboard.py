@@ -1,127 +1,36 @@
 """The leaderboard: tables regenerated from raw run files, never typed by hand.
 
 ``bench leaderboard`` reads every ``results.json`` under ``leaderboard/runs`` (copied there
-from ``bench run`` output directories with :func:`add_run`), checks its schema, and writes
-``leaderboard/README.md`` and ``docs/snippets/leaderboard.md``: one row per run in the layout
-of the paper's Tables 2 and 3, led by the run's observation track (``state``: the privileged
-state; ``pixels``: the paper's camera views; runs of different tracks are sorted apart and
-never share a directory name) (final success with its Wilson interval, online interaction
+from ``bench run`` output directories with :func:`add_run`), checks it, prints the table and
+writes it only where told (``--readme leaderboard/README.md --snippet
+docs/snippets/leaderboard.md --force`` regenerates the committed ones): one row per run in
+the layout of the paper's Tables 2 and 3, led by the run's observation track (``state``: the
+privileged state; ``pixels``: the paper's camera views; runs of different tracks are sorted
+apart and never share a directory name) (final success with its Wilson interval, online interaction
 time, time-to-95, cycle time, takeover minutes) plus the profile and the compute wall clock,
 so that a ``cpu``-profile number is never mistaken for a ``paper`` one.
 
-Nothing is copied or tabulated before it is checked: :func:`check_results` validates a
-``results.json`` against :func:`results_schema` (JSON Schema: types, rates in [0, 1], method,
-env and profile ids from the registries, no path separators in anything that names a
-directory) and the run's ``manifest.json`` sha256 when the run has one. :func:`build` skips
-(and reports) a bad file in ``root`` instead of failing on it.
+Nothing is copied or tabulated before it is checked: :func:`check_results`
+(:mod:`window_bench.harness.schemas`) validates a ``results.json`` against
+:func:`results_schema` (types, rates in [0, 1], counts that agree, method, env and profile ids
+from the registries, no path separators in anything that names a directory, a size cap) and
+the run's ``manifest.json`` sha256 when the run has one. :func:`build` skips (and reports) a
+bad file in ``root`` instead of failing on it.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import sys
 from pathlib import Path
 
 from window_bench.harness.evaluation import atomic_write_text
-from window_bench.harness.files import MANIFEST, RunFileError, read_manifest, verify_files
-from window_bench.harness.run import RESULTS_SCHEMA
+from window_bench.harness.files import MANIFEST, read_manifest
 from window_bench.harness.methods import METHODS
-
-RUN_FILES = ("results.json", "checkpoints.csv", "learning_curve.png")
-
-
-_SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+=-]*$")   # one directory name, no separator
-
-
-def results_schema() -> dict:
-    """JSON Schema of the ``results.json`` fields the leaderboard reads."""
-    import window_bench
-    from window_bench.harness.methods import PROFILES
-    from window_bench.pixels.track import TRACKS
-
-    opt = lambda s: {"anyOf": [s, {"type": "null"}]}  # noqa: E731
-    rate = {"type": "number", "minimum": 0, "maximum": 1}
-    nonneg = {"type": "number", "minimum": 0}
-    count = {"type": "integer", "minimum": 0}
-    interval = {"type": "array", "items": rate, "minItems": 2, "maxItems": 2}
-    text = {"type": "string", "pattern": r"^[^|\n\r]*$"}     # one Markdown table cell
-    commit = {"type": "object", "required": ["git_commit"], "properties": {
-        "git_commit": {"type": "string", "pattern": r"^([0-9a-f]{7,40}(-dirty)?|unknown)$"}}}
-    safe = {"type": "string", "pattern": _SAFE_NAME.pattern}
-    return {
-        "type": "object",
-        "required": ["schema_version", "method", "env_id", "profile", "seed", "final",
-                     "checkpoints", "provenance"],
-        "properties": {
-            "schema_version": {"const": RESULTS_SCHEMA},
-            "method": {"type": "object", "required": ["name", "label", "online_updates",
-                                                      "warm_start"],
-                       "properties": {"name": {"enum": list(METHODS)}, "label": text,
-                                      "online_updates": {"type": "boolean"},
-                                      "warm_start": {"type": "boolean"}}},
-            "env_id": {"enum": list(window_bench.ENV_IDS)},
-            "profile": {"type": "object", "required": ["name"],
-                        "properties": {"name": {"enum": list(PROFILES)}}},
-            "seed": count,
-            "track": {"enum": list(TRACKS)},
-            "agent_config_overrides": opt({
-                "type": "object", "propertyNames": {"pattern": r"^[A-Za-z_][A-Za-z0-9_]*$"},
-                "additionalProperties": {"anyOf": [{"type": ["number", "boolean"]}, safe,
-                                                   {"type": "array",
-                                                    "items": {"type": "number"}}]}}),
-            "final": {"type": "object",
-                      "required": ["success_rate", "wilson95", "episodes", "takeover_minutes",
-                                   "sim_hours", "wall_clock_s"],
-                      "properties": {"success_rate": rate, "wilson95": interval,
-                                     "episodes": {"type": "integer", "minimum": 1},
-                                     "cycle_time_s": opt(nonneg),
-                                     "time_to_95_sim_hours": opt(nonneg),
-                                     "takeover_minutes": nonneg, "sim_hours": nonneg,
-                                     "wall_clock_s": nonneg, "env_steps": count}},
-            "checkpoints": {"type": "array", "items": {
-                "type": "object", "required": ["env_steps", "success_rate", "wilson95"],
-                "properties": {"env_steps": count, "success_rate": rate,
-                               "wilson95": interval}}},
-            "provenance": commit,
-            "provenance_start": opt(commit),
-        },
-    }
-
-
-def _reject_constant(name: str):
-    raise ValueError(f"{name} is not a number JSON allows")
-
-
-def check_results(path: str | os.PathLike) -> dict:
-    """The parsed ``results.json`` at ``path`` if it passes :func:`results_schema` and its
-    run's manifest; otherwise a one-line ``ValueError`` naming the file, the field and why."""
-    import jsonschema
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no results.json at {path} (is the run finished?)")
-    if (path.parent / MANIFEST).is_file():
-        verify_files(path.parent, [n for n in RUN_FILES if (path.parent / n).exists()],
-                     read_manifest(path.parent))
-    try:
-        results = json.loads(path.read_text(), parse_constant=_reject_constant)
-    except (ValueError, UnicodeDecodeError) as e:
-        raise ValueError(f"{path}: not readable JSON ({e})") from None
-    err = jsonschema.exceptions.best_match(
-        jsonschema.Draft202012Validator(results_schema()).iter_errors(results))
-    if err is not None:
-        where = ".".join(map(str, err.absolute_path)) or "(top level)"
-        raise ValueError(f"{path}: {where}: {err.message}")
-    for where, c in [("final", results["final"])] + [
-            (f"checkpoints.{i}", c) for i, c in enumerate(results["checkpoints"])]:
-        lo, hi = c["wilson95"]
-        if not lo <= c["success_rate"] <= hi:
-            raise ValueError(f"{path}: {where}: success_rate {c['success_rate']} lies outside "
-                             f"its wilson95 [{lo}, {hi}]")
-    return results
+from window_bench.harness.schemas import RUN_FILES, SAFE_NAME, check_results, md_text, \
+    results_schema  # noqa: F401  (results_schema: the leaderboard's schema, documented here)
 
 
 def override_tag(items) -> str:
@@ -140,7 +49,7 @@ def run_dest(results: dict, root: str | os.PathLike) -> Path:
         tag += f"-{_track(results)}"
     name = f"{results['method']['name']}{tag}-{results['profile']['name']}-s{results['seed']}"
     dest = Path(root) / results["env_id"] / name
-    if not _SAFE_NAME.match(name) or not dest.resolve().is_relative_to(Path(root).resolve()):
+    if not SAFE_NAME.match(name) or not dest.resolve().is_relative_to(Path(root).resolve()):
         raise ValueError(f"leaderboard entry name {name!r} is not one safe directory name")
     return dest
 
@@ -198,8 +107,8 @@ def table(results: list[dict]) -> str:
         h = (f", h={m['h']}" if m["name"] in METHODS
              and m.get("h", METHODS[m["name"]].h) != METHODS[m["name"]].h else "")
         extra = "".join(f", {k}={v}" for k, v in (r.get("agent_config_overrides") or {}).items())
-        who = f"| {_track(r)} | {r['env_id']} | {m['label']} (`{m['name']}`{h}{extra}) | " \
-              f"{r['profile']['name']} | {r['seed']} |"
+        who = (f"| {_track(r)} | {r['env_id']} | {md_text(m['label'])} (`{m['name']}`{h}"
+               f"{extra}) | {r['profile']['name']} | {r['seed']} |")
         lines.append(
             f"{who} {_pct(fe['success_rate'])} [{_pct(lo)}, {_pct(hi)}] | "
             f"{fe['episodes']}, {fe['seed_set']} | {'–' if t95 is None else f'{t95:.2f}'} | "
@@ -211,10 +120,10 @@ def table(results: list[dict]) -> str:
     return "\n".join(lines) + "\n\nWhere and when each run was measured:\n\n" + "\n".join(runs)
 
 
-def build(root: str | os.PathLike = "leaderboard/runs", readme: str | os.PathLike | None =
-          "leaderboard/README.md", snippet: str | os.PathLike | None =
-          "docs/snippets/leaderboard.md") -> str:
-    """Regenerate the leaderboard files from ``root``; returns the table."""
+def build(root: str | os.PathLike = "leaderboard/runs", readme: str | os.PathLike | None = None,
+          snippet: str | os.PathLike | None = None) -> str:
+    """The table of the runs under ``root``, also written to ``readme`` (the page) and
+    ``snippet`` (the table alone, for the docs) where given; returns the table."""
     results = []
     for path in sorted(Path(root).rglob("results.json")):
         try:

@@ -54,11 +54,11 @@ from window_bench.harness.agent import Agent, AgentSpec
 from window_bench.harness.evaluation import atomic_write_text, provenance, wilson_interval
 from window_bench.harness.files import (STATE, RunDir, RunFileError, find_run_dir, load_state,
                                         verify_files)
-from window_bench.harness.seeds import DEV_SEED0, SEED_SETS, eval_seeds
+from window_bench.harness.seeds import DEV_SEED0, MAX_SEED, SEED_SETS, eval_seeds
 from window_bench.harness.methods import Method, Profile, agent_class, get_method, get_profile
 from window_bench.installer.rollout import Rollout
 from window_bench.data.steplog import ACTION_DIM, STEP_DT
-from window_bench.envs.task import FAILURE_MODES
+from window_bench.envs.task import FAILURE_MODE_NAMES, FAILURE_MODES
 
 RESULTS_SCHEMA = 1
 STEPS_PER_HOUR = 36_000            # 10 Hz
@@ -66,6 +66,9 @@ EVAL_SEED0 = DEV_SEED0   # checkpoint evaluations use the development seeds (har
 TIME_TO_95_J = 3
 RATE_WINDOW = 20
 LOSS_LOG_EVERY = 500    # learner calls averaged into one TensorBoard point (loss/...)
+DEMOS = "demos"         # where a run without --demos collects its own, inside --out
+MAX_OVERRIDE_INT = 1_000_000   # --agent-config counts and sizes (the paper's Stage I: 1e6)
+MAX_OVERRIDE_WIDTH = 8192      # --agent-config layer widths (the paper's MLPs: 512)
 
 
 # ---------------------------------------------------------------------------- agents
@@ -96,6 +99,84 @@ def parse_overrides(items: list[str] | None) -> dict:
         if isinstance(out[key], list):
             out[key] = tuple(out[key])
     return out
+
+
+def _fits(value, tp) -> bool:
+    """``value`` (parsed from JSON, lists as tuples) has the annotated type ``tp``."""
+    import types
+    import typing
+
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(value, a) for a in args)
+    if origin is tuple:
+        if not isinstance(value, tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_fits(v, args[0]) for v in value)
+        return len(value) == len(args) and all(_fits(v, a) for v, a in zip(value, args))
+    if tp is type(None):
+        return value is None
+    if tp is bool:
+        return isinstance(value, bool)
+    if tp is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if tp is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if tp is str:
+        return isinstance(value, str)
+    return True   # a type the configs do not use: their own checks decide
+
+
+def _type_name(tp) -> str:
+    import types
+    import typing
+
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in args)
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"a list of {_type_name(args[0]).removeprefix('an ').removeprefix('a ')}s"
+        return f"a list [{', '.join(_type_name(a) for a in args)}]"
+    return {type(None): "null", bool: "true or false", int: "an integer", float: "a number",
+            str: "a string"}.get(tp, getattr(tp, "__name__", str(tp)))
+
+
+def check_agent_config(agent_cls: type, h: int, profile: Profile, overrides: dict):
+    """The agent's config with ``--agent-config`` applied, or a one-line ``ValueError``: each
+    value must have its field's declared type (read from the config dataclass) and be finite;
+    the config's own checks then hold the ranges (positive sizes, rates in [0, 1] ...)."""
+    import dataclasses
+    import math
+    import typing
+
+    try:   # the config's own checks first: their messages name the allowed range
+        config, error = agent_cls.make_config(h, profile, overrides), None
+    except TypeError as e:   # a value of a type its checks did not expect
+        config, error = None, e
+    default = agent_cls.make_config(h, profile, {})
+    if dataclasses.is_dataclass(default):
+        name, hints = type(default).__name__, typing.get_type_hints(type(default))
+        for key, value in overrides.items():
+            if key in hints and not _fits(value, hints[key]):
+                raise ValueError(f"{name}.{key} = {value!r} is not allowed: it must be "
+                                 f"{_type_name(hints[key])}")
+    if error is not None:   # still one line, naming the values
+        raise ValueError(f"--agent-config {overrides}: {str(error).splitlines()[0]}")
+    for key, value in overrides.items():
+        # sizes the configs bound only from below: a width or a count that exhausts memory
+        # would stop the run after its directory was made
+        most = MAX_OVERRIDE_WIDTH if isinstance(value, tuple) else MAX_OVERRIDE_INT
+        for v in value if isinstance(value, tuple) else (value,):
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"{type(config).__name__}.{key} = {value!r} is not allowed: "
+                                 f"it must be finite")
+            if isinstance(v, int) and not isinstance(v, bool) and v > most:
+                raise ValueError(f"{type(config).__name__}.{key} = {value!r} is not allowed: "
+                                 f"{'each entry' if isinstance(value, tuple) else 'it'} must "
+                                 f"be at most {most}")
+    return config
 
 
 def obs_normalizer(obs: np.ndarray, floor: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
@@ -150,7 +231,8 @@ def _eval_episode(rollout: Rollout, seed: int) -> dict:
             "cycle_time_s": round(log.T * STEP_DT, 1),
             "suction_acquired": bool(info["suction_acquired"]),
             "insertion_entered": bool(info["insertion_entered"]),
-            "failure_mode": "" if log.terminated[-1] else (info["failure_mode"] or "timeout"),
+            "failure_mode": "" if log.terminated[-1]
+            else (FAILURE_MODE_NAMES[info["failure_code"]] or "timeout"),
             # suction lost by a vacuum-off command vs grips broken at the holding limit
             "commanded_releases": int(info["suction_releases"]),
             "grip_breaks": int(info["suction_failures"]),
@@ -376,7 +458,9 @@ class Run:
         from window_bench.installer.operators import get_operator
 
         get_operator(operator)
-        self.env_id, self.seed, self.operator = env_id, int(seed), operator
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+            raise ValueError(f"--seed {seed!r}; allowed: an integer in 0..{MAX_SEED}")
+        self.env_id, self.seed, self.operator = env_id, seed, operator
         if acceptance_noise is not None:
             from window_bench.envs.wrappers import AcceptanceSensor
 
@@ -384,28 +468,56 @@ class Run:
         self.acceptance_noise = acceptance_noise
         self.agent_config = dict(agent_config or {})
         # A bad --agent-config stops the run here, before any demo is collected.
-        self.agent_cls.make_config(self.method.h, self.profile, self.agent_config)
+        check_agent_config(self.agent_cls, self.method.h, self.profile, self.agent_config)
         self.out = Path(out)
-        self.demos_root = Path(demos) if demos is not None else self.out / "demos"
+        self.demos_root = Path(demos) if demos is not None else self.out / DEMOS
         # The pixel track's re-observed demos (pixels/demo_cache.py); None: beside the demos.
         self.pixel_demos_cache = Path(pixel_demos_cache) if pixel_demos_cache is not None \
             else None
+        self._check_dirs(stage1_cache)
         self.progress, self.save_every_s = progress, float(save_every_s)
         h = self.agent_config.get("h", self.method.h)
         if h != self.method.h:
             raise ValueError(f"--agent-config h = {h!r}: the method {self.method.name} has h = "
                              f"{self.method.h} (Table 1); choose the method with the chunk "
                              f"horizon you want")
-        # Demos that exist are read now: one that cannot be read stops the run before any file.
-        self._raw_demos = self._raw_demo_episodes(collect=False)
+        # Demos elsewhere that exist are read now: one that cannot be read stops the run
+        # before any file. The run's own demos are read once checked against its manifest.
+        self._raw_demos = None if self._own_demos else self._raw_demo_episodes(collect=False)
         self.files = RunDir(self.out, {
             "method": self.method.name, "env_id": self.env_id, "profile": self.profile.name,
             "seed": self.seed, "operator": self.operator, "track": self.track, "h": self.method.h,
             "acceptance_noise": self.acceptance_noise, "agent_config": self.agent_config},
             resume)
+        if self._own_demos:
+            from window_bench.installer.demos import demo_dataset_path
+
+            try:
+                self.files.check_listed(demo_dataset_path(DEMOS, self.env_id, self.operator))
+                self._raw_demos = self._raw_demo_episodes(collect=False)
+            except BaseException:
+                self.files.close()
+                raise
         self._stop_after_env_steps = None   # tests: simulate a kill (no state written)
         self._tb, self._loss_acc = None, []
         self.loss_log_every = LOSS_LOG_EVERY
+
+    def _check_dirs(self, stage1_cache) -> None:
+        """The directories the run writes besides ``out`` are usable (a file in the way is
+        refused now, not after Stage I); demos inside ``out`` are its own ``demos/``."""
+        from window_bench.harness.files import check_out_dir
+
+        for option, path in (("--stage1-cache", stage1_cache),
+                             ("--pixel-demos-cache", self.pixel_demos_cache)):
+            if path is not None:
+                check_out_dir(path, option)
+        if not self.demos_root.is_dir():   # collected there
+            check_out_dir(self.demos_root, "--demos")
+        out, demos = self.out.resolve(), self.demos_root.resolve()
+        self._own_demos = demos == out / DEMOS
+        if demos.is_relative_to(out) and not self._own_demos:
+            raise ValueError(f"--demos {self.demos_root}: inside the run directory {self.out}; "
+                             f"use its own {DEMOS}/ (the default) or a directory outside it")
 
     def _init_track(self, track: str, encoder_weights) -> None:
         """The observation track (docs/pixels.md): ``state`` (the privileged 52-float state)
@@ -451,8 +563,8 @@ class Run:
         eps = load_or_collect_demos(self.demos_root, self.env_id, self.operator,
                                     self.profile.n_demos, seed=1_000_000 + self.seed,
                                     progress=self.progress)
-        if missing and self.demos_root == self.out / "demos":
-            self.files.record("demos")   # collected into the run: listed, verified on resume
+        if missing and self._own_demos:
+            self.files.record(DEMOS)   # collected into the run: listed, verified on resume
         if len(eps) < self.profile.n_demos:
             raise ValueError(f"{self.demos_root}: {len(eps)} demonstrations, the profile needs "
                              f"{self.profile.n_demos}")
@@ -467,10 +579,23 @@ class Run:
                 from window_bench.pixels.demo_cache import DEFAULT_SUBDIR, cached_pixel_demos
 
                 cache = self.pixel_demos_cache or self.demos_root / DEFAULT_SUBDIR
+                # a cache inside the run is the run's: listed, and checked before it is read
+                out, where = self.out.resolve(), cache.resolve()
+                inside = where.relative_to(out).as_posix() if where.is_relative_to(out) else None
+                if inside is not None:
+                    self.files.check_listed(inside)
                 self._pixel_demos, self._pixel_demos_record = cached_pixel_demos(
                     eps, self.env_id, self.backbone, cache, self.progress)
+                if inside is not None:
+                    self.files.record(inside)
             return self._pixel_demos
         return eps
+
+    def _demos_sha256(self) -> str:
+        """The recorded demonstrations' digest: a resume must read the ones the run began on."""
+        from window_bench.harness.stage1 import demos_sha256
+
+        return demos_sha256(self._raw_demos)
 
     def _fresh(self) -> dict:
         torch.manual_seed(self.seed)
@@ -483,7 +608,7 @@ class Run:
         return {"stage": "offline", "offline_done": 0, "env_steps": 0, "episodes": [],
                 "checkpoints": [], "grad_steps": 0, "update_credit": 0.0, "wall_clock_s": 0.0,
                 "next_checkpoint": 0, "obs_dim": int(demos[0].observations.shape[1]),
-                "h": self.method.h,
+                "h": self.method.h, "demos_sha256": self._demos_sha256(),
                 "pixel_demos": [self._pixel_demos_record] if self.track == "pixels" else None,
                 "provenance_start": provenance()}
 
@@ -512,13 +637,28 @@ class Run:
         self._last_save = time.perf_counter()
 
     def _load(self) -> None:
-        st, _ = self.files.read_state(STATE, "state")   # RunDir checked the run's identity
+        st, saved = self.files.read_state(STATE, "state")
+        # RunDir matched this command to the manifest; the manifest must match the run that
+        # saved the state (a manifest edited to another seed would relabel this run)
+        run, saved = self.files.manifest["run"], saved if isinstance(saved, dict) else {}
+        for key in sorted(set(saved) | set(run)):
+            if saved.get(key) != run.get(key):
+                raise RunFileError(f"{self.out / 'manifest.json'}: records {key} = "
+                                   f"{run.get(key)!r}, the run's {STATE} was saved with "
+                                   f"{saved.get(key)!r} (edited, or another run's manifest); "
+                                   f"restore it from a copy or start a new run")
         self.c = st["counters"]
         if self.c.setdefault("h", self.method.h) != self.method.h:
-            raise ValueError(f"--resume: the saved run has h = {self.c['h']}, this command "
-                             f"asks for h = {self.method.h}")
+            raise RunFileError(f"--resume: the saved run has h = {self.c['h']}, this command "
+                               f"asks for h = {self.method.h}")
+        demos, digest = self._demos(), self._demos_sha256()
+        if self.c.setdefault("demos_sha256", digest) != digest:
+            raise RunFileError(f"--resume: the run in {self.out} began on other demonstrations "
+                               f"than those in {self.demos_root} (sha256 "
+                               f"{self.c['demos_sha256'][:12]}, not {digest[:12]}); pass the "
+                               f"--demos it began with")
         self.agent = self.agent_cls.from_state_dict(st["agent"])
-        self.agent.attach_demos(self._demos())
+        self.agent.attach_demos(demos)
         if self.track == "pixels":   # one record per start: cache key, hit, seconds
             self.c.setdefault("pixel_demos", []).append(self._pixel_demos_record)
         self.demo_rb, self.online_rb = (_replay_from_state(st[k]) for k in ("demo_rb", "online_rb"))

@@ -23,6 +23,10 @@ DEV_SEED0 = 100_000
 TEST_SEED0 = 500_000
 SEED_SETS = {"dev": DEV_SEED0, "test": TEST_SEED0}
 MAX_EPISODES = TEST_SEED0 - DEV_SEED0
+#: The largest run or first-episode seed a command accepts: what numpy's legacy seeding (SB3)
+#: takes is below 2**32, and the seeds derived by an offset (``seed + 1``, demonstrations'
+#: ``1_000_000 + seed``) stay there; env reset seeds may be larger (Gymnasium takes any).
+MAX_SEED = 2**31 - 1
 
 
 def eval_seeds(seed_set: str, episodes: int) -> list[int]:

@@ -114,12 +114,17 @@ class Stage1Cache:
                 fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
     def load(self, key: str):
-        """``(tree, meta)`` of the entry, or ``None`` when there is none."""
-        from window_bench.harness.files import load_state
+        """``(tree, meta)`` of the entry, or ``None`` when there is none; an entry stored
+        under another key (a file copied or renamed into place) is refused."""
+        from window_bench.harness.files import RunFileError, load_state
 
         if not self.path(key).is_file():
             return None
-        return load_state(self.path(key), KIND)
+        tree, meta = load_state(self.path(key), KIND)
+        if not isinstance(meta, dict) or meta.get("key") != key:
+            raise RunFileError(f"{self.path(key)}: the Stage I entry of another key; remove "
+                               f"it to compute this one again")
+        return tree, meta
 
     def store(self, key: str, tree: dict, material: dict | None, wall_clock_s: float) -> None:
         """Write (or rewrite, e.g. adding checkpoint 0's evaluation rows) an entry;

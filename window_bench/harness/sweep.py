@@ -21,6 +21,12 @@ seed set, and blocks of cells::
     seeds = [0, 1, 2]
     on = ["WindowInstall-A-Panel40x40-v0"]
 
+:func:`load_grid` checks everything before any work: ids against the registries, every
+``agent_config`` value against the config of each agent it goes to (as ``bench run
+--agent-config`` does: known field, type, finite and in range, one of the allowed words), and
+every name that becomes part of a path (grid name, cell names) as one safe file name; a sweep
+writes nothing outside OUT (:func:`check_inside`).
+
 Every cell is one ``bench run`` (or ``bench eval``) in its own process, started by a Ray task
 that asks for one CPU: a crash or an out-of-memory kill stays inside its cell and is recorded
 in ``OUT/sweep-logs/<cell>.json`` beside its log. A cell's directory is its identity
@@ -46,7 +52,9 @@ import fcntl
 import fnmatch
 import itertools
 import json
+import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -58,12 +66,14 @@ from pathlib import Path
 from window_bench.harness.evaluation import atomic_write_text
 from window_bench.harness.leaderboard import override_tag
 from window_bench.harness.methods import get_method, get_profile
+from window_bench.harness.schemas import FIELD_NAME, POLICY_FILE, SAFE_NAME, read_json
 from window_bench.harness.seeds import SEED_SETS
 
 GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "eval_workers",
              "track", "train", "evaluate"}
 TRAIN_KEYS = {"methods", "envs", "seeds", "h", "agent_config"}
 EVALUATE_KEYS = {"method", "env", "seeds", "on", "h", "agent_config"}
+MAX_GRID_BYTES = 1 << 20
 LOGS = "sweep-logs"      # OUT/sweep-logs/<cell>.log and .json: nothing of ours in a run directory
 
 
@@ -145,10 +155,13 @@ def load_grid(path: str | os.PathLike) -> Grid:
     path = Path(path)
     if not path.is_file():
         raise GridError(f"{path}: no such grid file")
+    if path.stat().st_size > MAX_GRID_BYTES:     # a grid is a page of TOML, never megabytes
+        raise GridError(f"{path}: {path.stat().st_size:,} bytes, over the {MAX_GRID_BYTES:,}-"
+                        f"byte limit for a grid file; not read")
     try:
-        doc = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise GridError(f"{path}: not valid TOML ({e})") from None
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError) as e:
+        raise GridError(f"{path}: not valid TOML ({str(e).splitlines()[0]})") from None
     unknown = set(doc) - GRID_KEYS
     if unknown:
         _fail(path, f"unknown key(s) {', '.join(sorted(unknown))}; allowed: "
@@ -163,7 +176,20 @@ def load_grid(path: str | os.PathLike) -> Grid:
     seed_set = doc.get("seed_set", "test")
     if seed_set not in SEED_SETS:
         _fail(path, f"seed_set = {seed_set!r}; allowed: {', '.join(SEED_SETS)}")
+    name = doc.get("name", path.stem)
+    if not isinstance(name, str) or not SAFE_NAME.match(name):
+        _fail(path, f"name = {name!r}; allowed: one file name of letters, digits and _.+=- "
+                    f"(it names OUT/sweep-<name>.json)")
+    table = doc.get("table")
+    if table is not None and (isinstance(table, bool) or table not in range(2, 8)):
+        _fail(path, f"table = {table!r}; allowed: an integer in 2..7")
+    if not isinstance(doc.get("title", ""), str):
+        _fail(path, f"title = {doc['title']!r}; allowed: a string")
+    from window_bench.installer.operators import OPERATORS
+
     operator = doc.get("operator", "average")
+    if operator not in OPERATORS:
+        _fail(path, f"operator = {operator!r}; allowed: {', '.join(sorted(OPERATORS))}")
     from window_bench.pixels.track import TRACKS
 
     track = doc.get("track", "state")
@@ -210,11 +236,54 @@ def load_grid(path: str | os.PathLike) -> Grid:
                             f"not of {m!r}")
         return hs
 
-    def overrides(block, spec):
+    def overrides(block, spec, methods, hs):
+        """The block's agent_config as sorted pairs, each value checked against the config
+        of every agent it goes to (as ``bench run --agent-config`` checks it), and each one
+        a part of a cell's directory name."""
         cfg = spec.get("agent_config", {})
         if not isinstance(cfg, dict):
             _fail(path, f"{block}.agent_config must be a table, got {cfg!r}")
-        return tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in cfg.items()))
+        for k, v in cfg.items():
+            where = f"{block}.agent_config.{k}"
+            if not re.match(FIELD_NAME, k):
+                _fail(path, f"{where}: not a config field name (letters, digits, _; no "
+                            f"leading _)")
+            if k == "h":
+                _fail(path, f"{where}: set the chunk horizon with the block's h = [...]")
+            items = v if isinstance(v, list) else [v]
+            for x in items:
+                if isinstance(x, float) and not math.isfinite(x):
+                    _fail(path, f"{where} = {v!r}; allowed: finite numbers")
+                if isinstance(x, str) and not SAFE_NAME.match(x):
+                    _fail(path, f"{where} = {v!r}; allowed: a word of letters, digits and "
+                                f"_.+=- (it becomes part of a directory name)")
+                if not isinstance(x, (bool, int, float, str)) or \
+                        (isinstance(v, list) and isinstance(x, (bool, str))):
+                    _fail(path, f"{where} = {v!r}; allowed: a number, true/false, a word, or "
+                                f"a list of numbers")
+        pairs = tuple(sorted((k, tuple(v) if isinstance(v, list) else v)
+                             for k, v in cfg.items()))
+        from window_bench.harness.methods import agent_class
+        from window_bench.pixels.track import track_agent_kind
+
+        for m, h in itertools.product(methods, hs):
+            method = get_method(m)
+            try:
+                cls = agent_class(track_agent_kind(method.agent, track))
+                base = cls.make_config(h or method.h, get_profile(profile), {}) if pairs else None
+                for k, v in pairs:     # a list where the config holds a tuple, and only there
+                    d = getattr(base, k, None)
+                    if d is not None and isinstance(d, tuple) != isinstance(v, tuple):
+                        _fail(path, f"{block}.agent_config.{k} = {v!r}; allowed: "
+                                    + (f"a list, like {list(d)}" if isinstance(d, tuple)
+                                       else f"one value, like {d!r}"))
+                cls.make_config(h or method.h, get_profile(profile), dict(pairs))
+            except (ValueError, TypeError) as e:
+                if isinstance(e, GridError):
+                    raise
+                msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+                _fail(path, f"{block}.agent_config for {m}: {msg}")
+        return pairs
 
     cells: list[Cell] = []
     for i, spec in enumerate(doc.get("train", [])):
@@ -225,8 +294,9 @@ def load_grid(path: str | os.PathLike) -> Grid:
         methods = _list(path, block, spec.get("methods"), "methods", method_ok(block))
         envs = _list(path, block, spec.get("envs"), "envs", env_ok(block))
         seeds = _list(path, block, spec.get("seeds"), "seeds", seed_ok(block))
-        cfg = overrides(block, spec)
-        for m, h, e, s in itertools.product(methods, h_list(block, spec, methods), envs, seeds):
+        hs = h_list(block, spec, methods)
+        cfg = overrides(block, spec, methods, hs)
+        for m, h, e, s in itertools.product(methods, hs, envs, seeds):
             cells.append(Cell(m, e, s, profile, h if h != get_method(m).h else None, cfg,
                               track=track))
     for i, spec in enumerate(doc.get("evaluate", [])):
@@ -240,24 +310,36 @@ def load_grid(path: str | os.PathLike) -> Grid:
         env_ok(block)(spec.get("env"))
         seeds = _list(path, block, spec.get("seeds"), "seeds", seed_ok(block))
         on = _list(path, block, spec.get("on"), "on", env_ok(block))
-        cfg = overrides(block, spec)
-        for h, s, target in itertools.product(h_list(block, spec, [method]), seeds, on):
+        hs = h_list(block, spec, [method])
+        cfg = overrides(block, spec, [method], hs)
+        for h, s, target in itertools.product(hs, seeds, on):
             cells.append(Cell(method, spec["env"], s, profile,
                               h if h != get_method(method).h else None, cfg, on=target,
                               track=track))
     if not cells:
         _fail(path, "declares no cells (add a [[train]] or [[evaluate]] block)")
     unique = tuple(dict.fromkeys(cells))
-    return Grid(doc.get("name", path.stem), path, profile, M, seed_set, operator, unique,
-                doc.get("table"), eval_workers)
+    for c in unique:
+        run = c.name.split("/", 1)[1]
+        if not SAFE_NAME.match(run):
+            _fail(path, f"cell name {run!r} is not one safe directory name")
+    return Grid(name, path, profile, M, seed_set, operator, unique, table, eval_workers)
 
 
 # ---------------------------------------------------------------------------- cell state
 def _read_json(path: Path) -> dict | None:
+    """A cell's JSON file, or None where it is missing, oversize or not strict JSON."""
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        doc = read_json(path)
+    except ValueError:
         return None
+    return doc if isinstance(doc, dict) else None
+
+
+def _obj(value) -> dict:
+    """A field that should hold a JSON object, or an empty one (a hand-edited file's
+    ``"final_eval": 7`` reads as no evaluation, never as a traceback)."""
+    return value if isinstance(value, dict) else {}
 
 
 def cell_status(cell: Cell, grid: Grid, out: Path) -> str:
@@ -274,7 +356,7 @@ def cell_status(cell: Cell, grid: Grid, out: Path) -> str:
                 f"the grid asks for M = {grid.M} on {grid.seed_set!r}")
     r = _read_json(p / "results.json")
     if r is not None:
-        fe = r.get("final_eval") or {}
+        fe = _obj(r.get("final_eval"))
         if (fe.get("episodes"), fe.get("seed_set")) == (grid.M, grid.seed_set):
             return "done"
         if not _has_state(p):
@@ -290,27 +372,36 @@ def _has_state(run_dir: Path) -> bool:
 def final_policy(run_dir: Path) -> Path:
     """The final policy file a finished run recorded in its results."""
     r = _read_json(run_dir / "results.json") or {}
-    rel = (r.get("final_eval") or {}).get("policy")
+    rel = _obj(r.get("final_eval")).get("policy")
     if rel is None:
         raise FileNotFoundError(f"{run_dir}/results.json names no final policy")
+    if not isinstance(rel, str) or not re.match(POLICY_FILE, rel):
+        raise FileNotFoundError(f"{run_dir}/results.json: final policy {rel!r} is not a file "
+                                f"of the run's policies/")
     return run_dir / rel
 
 
 def _progress_detail(cell: Cell, counters: dict) -> str:
     """How far a partial run is, from the counters of its last saved state."""
+    def num(key) -> float:   # a hand-edited state reads as 0, never as a traceback
+        v = counters.get(key)
+        return v if isinstance(v, (int, float)) and not isinstance(v, bool) else 0
+
     stage = counters.get("stage")
+    episodes = counters.get("episodes")
     if stage == "offline":
-        where = f"Stage I, {counters.get('offline_done', 0):,} updates"
+        where = f"Stage I, {num('offline_done'):,.0f} updates"
     elif stage in ("warm", "online"):
         m, prof = get_method(cell.method), get_profile(cell.profile)
         budget = prof.budget_steps if m.online_updates else prof.warm_steps
         where = (f"Stage {'II' if stage == 'warm' else 'III'}, "
-                 f"{counters.get('env_steps', 0):,}/{budget:,} env steps, "
-                 f"{len(counters.get('episodes') or ())} episodes")
+                 f"{num('env_steps'):,.0f}/{budget:,} env steps, "
+                 f"{len(episodes) if isinstance(episodes, list) else 0} episodes")
     else:
         where = {"evaluate0": "Stage I done, checkpoint-0 evaluation",
-                 "done": "training done, final evaluation"}.get(stage, f"stage {stage}")
-    return f"{where}, {(counters.get('wall_clock_s') or 0) / 60:.0f} min so far"
+                 "done": "training done, final evaluation"}.get(
+                     stage, f"stage {str(stage)[:40]!r}")
+    return f"{where}, {num('wall_clock_s') / 60:.0f} min so far"
 
 
 def short_commit(commit: str | None) -> str | None:
@@ -360,9 +451,10 @@ def cell_report(cell: Cell, grid: Grid, out: Path) -> dict:
     detail = ""
     if status == "done":
         r = _read_json(p) if cell.on is not None else (_read_json(p / "results.json") or {})
-        fe = r if cell.on is not None else r.get("final_eval") or {}
+        fe = r if cell.on is not None else _obj(r.get("final_eval"))
         k, n = fe.get("successes"), fe.get("episodes")
-        wall = (r.get("final") or {}).get("wall_clock_s")
+        wall = _obj(r.get("final")).get("wall_clock_s")
+        wall = wall if isinstance(wall, (int, float)) and not isinstance(wall, bool) else None
         detail = f"{k}/{n} on the {fe.get('seed_set')} seeds" if k is not None else ""
         detail += f", {wall / 60:.0f} min wall clock in bench run" if wall else ""
         commit = cell_commit(cell, out)
@@ -537,6 +629,21 @@ def select(grid: Grid, only: list[str] | None) -> Grid:
     return dataclasses.replace(grid, cells=cells)
 
 
+def check_inside(grid: Grid, out: str | os.PathLike) -> None:
+    """Every path a sweep of ``grid`` writes resolves inside ``out``: a cell name or a
+    symlink that leads elsewhere is a :class:`GridError` before anything runs."""
+    out = Path(out)
+    root = out.resolve()
+    paths = [out / f"sweep-{grid.name}.json", out / "stage1_cache"]
+    for c in grid.cells:
+        paths += [c.path(out), out / LOGS / f"{c.name}.log", out / LOGS / f"{c.name}.json"]
+        if c.on is None:
+            paths.append(demos_dir(c, grid, out))
+    for p in paths:
+        if not p.resolve().is_relative_to(root):
+            raise GridError(f"{grid.path}: {p} resolves to {p.resolve()}, outside --out {out}")
+
+
 class Sweep:
     """Runs a grid's cells on Ray (see the module docstring)."""
 
@@ -544,6 +651,7 @@ class Sweep:
                  address: str | None = None, progress: bool = True, stage1_cache: bool = True,
                  only: list[str] | None = None):
         self.grid, self.out = select(grid, only), Path(out)
+        check_inside(self.grid, self.out)
         self.stage1_cache = stage1_cache
         self.address = address
         self.workers = workers

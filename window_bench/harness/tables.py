@@ -18,10 +18,13 @@ two seeds there is no interval ("-"); with 3 seeds the bootstrap has only 10 dis
 resamples, so read the interval as a range of what the seeds did. The interquartile mean
 (``scipy.stats.trim_mean(x, 0.25)``) is added where a row has at least 5 seeds.
 
-Outputs (all written atomically): one Markdown page per table under ``docs/results/``
-(``table2.md`` ... ``table7.md``, ``index.md``), and ``fig10.png/.svg`` (setting A) and
-``fig11.png/.svg`` (setting B): running averages over the last 20 training episodes of
+Outputs (all written atomically, only under ``--out`` and to ``--readme``): one Markdown page
+per table (``table2.md`` ... ``table7.md``, ``index.md``), and ``fig10.png/.svg`` (setting A)
+and ``fig11.png/.svg`` (setting B): running averages over the last 20 training episodes of
 success, cycle time and intervention rate against online hours, mean and interval over seeds.
+The committed Results pages and the README's headline are regenerated with::
+
+    bench tables --runs leaderboard/runs --out docs/results --readme README.md --force
 """
 
 from __future__ import annotations
@@ -95,19 +98,29 @@ def _overrides(r: dict) -> tuple:
     return tuple(sorted((k, json.dumps(v)) for k, v in (r.get("agent_config_overrides") or {}).items()))
 
 
+def _skip(e: Exception) -> None:
+    """The leaderboard's rule: a bad file is named and skipped, never rendered."""
+    print(f"warning: skipped: {e}", file=sys.stderr)
+
+
 def load_runs(root: str | os.PathLike) -> dict[RowKey, list[Sample]]:
-    """Every cell under ``root`` as ``{row: [one Sample per seed]}``; results files are
-    checked as the leaderboard checks them."""
-    from window_bench.harness.leaderboard import check_results
+    """Every cell under ``root`` as ``{row: [one Sample per seed]}``; results files and
+    evaluation summaries are checked (:mod:`window_bench.harness.schemas`) and a bad one is
+    skipped with a warning."""
+    from window_bench.harness.schemas import SAFE_NAME, check_evaluation, check_results
 
     root = Path(root)
     rows: dict[RowKey, list[Sample]] = defaultdict(list)
     setting_of = {v: k for k, v in SETTINGS.items()}
     for path in sorted(root.rglob("results.json")):
+        rel = path.parent.relative_to(root)
         try:
+            bad = [p for p in rel.parts if not SAFE_NAME.match(p)]
+            if bad:     # the directory is printed in the table's list of raw files
+                raise ValueError(f"{path}: directory name {bad[0]!r} is not one safe name")
             r = check_results(path)
-        except ValueError as e:      # the leaderboard's rule: a bad file is named and skipped
-            print(f"warning: skipped: {e}", file=sys.stderr)
+        except (ValueError, FileNotFoundError) as e:
+            _skip(e)
             continue
         if r["env_id"] not in setting_of:
             continue
@@ -122,15 +135,16 @@ def load_runs(root: str | os.PathLike) -> dict[RowKey, list[Sample]]:
             time_to_95_h=f.get("time_to_95_sim_hours") if m["online_updates"] else None,
             takeover_min=f.get("takeover_minutes"),
             online_h=f["sim_hours"] if (m["online_updates"] or m["warm_start"]) else None,
-            path=str(path.parent.relative_to(root)), episodes=r.get("train_episodes") or []))
+            path=str(rel), episodes=r.get("train_episodes") or []))
         for panel_id, panel in PANELS.items():
             ood = r["env_id"].replace("-v0", f"-{panel_id}-v0")
             ev_path = root / ood / f"{path.parent.name}.json"
             if not ev_path.is_file():
                 continue
-            ev = json.loads(ev_path.read_text())
-            if ev.get("env_id") != ood:
-                print(f"warning: skipped {ev_path}: env_id {ev.get('env_id')!r}", file=sys.stderr)
+            try:
+                ev = check_evaluation(ev_path, ood, m["name"])
+            except ValueError as e:
+                _skip(e)
                 continue
             ekey = RowKey(key.setting, key.method, key.h, key.overrides, key.profile,
                           ev["seed_set"], ev["episodes"], key.track, panel)
@@ -576,10 +590,21 @@ def update_readme(path: str | os.PathLike, text: str) -> bool:
     return True
 
 
-def build(root: str | os.PathLike = "leaderboard/runs", out: str | os.PathLike = "docs/results",
-          figures: bool = True, readme: str | os.PathLike | None = None) -> dict[str, str]:
-    """Regenerate every page (and figure) from ``root``, and the headline block of
-    ``readme`` when given; returns ``{file name: text}``."""
+def outputs(out: str | os.PathLike, figures: bool = True,
+            readme: str | os.PathLike | None = None) -> list[Path]:
+    """Every file :func:`build` writes, and nothing else (``bench tables`` refuses to
+    overwrite them without ``--force``)."""
+    out = Path(out)
+    files = [out / f"table{t}.md" for t in TITLES] + [out / "index.md"]
+    if figures:
+        files += [out / f"{fig}.{ext}" for fig in ("fig10", "fig11") for ext in ("png", "svg")]
+    return files + ([Path(readme)] if readme is not None else [])
+
+
+def build(root: str | os.PathLike, out: str | os.PathLike, figures: bool = True,
+          readme: str | os.PathLike | None = None) -> dict[str, str]:
+    """Regenerate every page (and figure) from ``root`` into ``out``, and the headline block
+    of ``readme`` when given; returns ``{file name: text}``. It writes :func:`outputs` only."""
     root, out = Path(root), Path(out)
     rows = load_runs(root)
     paper = load_paper()

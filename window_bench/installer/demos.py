@@ -31,6 +31,7 @@ from window_bench.harness.evaluation import atomic_write_text, provenance
 from window_bench.installer.operators import HumanlikeInstaller, get_operator
 from window_bench.installer.rollout import Rollout
 from window_bench.data.steplog import STEP_DT, EpisodeLog
+from window_bench.envs.task import FAILURE_MODE_NAMES
 
 
 def demo_dataset_id(env_id: str, operator: str) -> str:
@@ -68,8 +69,23 @@ def _save_partial(path: Path, log: EpisodeLog, row: dict) -> None:
 
 
 def _load_partial(path: Path, env_id: str, operator: str) -> tuple[EpisodeLog | None, dict]:
+    """A finished episode's checkpoint (no pickle: numpy refuses object arrays); one that is
+    not what :func:`_save_partial` wrote is a one-line ``ValueError`` naming it."""
+    try:
+        return _read_partial(path, env_id, operator)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, EOFError) as e:
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ValueError(f"{path}: not a demonstration checkpoint of this collection ({msg}); "
+                         f"remove it to run that episode again") from None
+
+
+def _read_partial(path: Path, env_id: str, operator: str) -> tuple[EpisodeLog | None, dict]:
     with np.load(path) as z:
         row = json.loads(str(z["row"]))
+        missing = {"episode_id", "seed", "success", "seconds", "recoveries",
+                   "failure_mode"} - set(row)
+        if missing:
+            raise ValueError(f"its row lacks {', '.join(sorted(missing))}")
         if not row["success"]:
             return None, row
         log = EpisodeLog(observations=z["observations"], actions=z["actions"],
@@ -127,7 +143,7 @@ def collect_demos(env_id: str, n: int, out: str | os.PathLike, *, operator: str 
                    "steps": log.T, "seconds": round(log.T * STEP_DT, 1),
                    "recoveries": int(demonstrator.recoveries),
                    "hesitations": int(demonstrator.hesitations),
-                   "failure_mode": rollout.info.get("failure_mode", "")}
+                   "failure_mode": FAILURE_MODE_NAMES[rollout.info["failure_code"]]}
             _save_partial(path, log, row)
         rows.append(row)
         if row["success"]:

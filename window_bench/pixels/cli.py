@@ -1,6 +1,6 @@
 """``bench encoder``: train the in-domain default backbone, or inspect a weights file.
 
-    bench encoder train --out window_bench/pixels/assets/resnet10_window.safetensors
+    bench encoder train --out window_bench/pixels/assets/resnet10_window.safetensors --force
     bench encoder info  PATH      # loads PATH as the pixel track would; prints its record
 """
 
@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 
@@ -18,11 +19,34 @@ def _number_in(upper: float):
     return checked_number(float, lambda v: 0.0 < v <= upper, f"in (0, {upper}]")
 
 
+def cannot_render() -> str | None:
+    """Why this machine cannot render (None when it can), from one frame of an empty model:
+    a backend that is set but not installed fails deep inside PyOpenGL or MuJoCo, and here
+    before any work rather than after the episodes are collected."""
+    import mujoco
+
+    from window_bench.gl import renderer
+
+    try:
+        r = renderer(mujoco.MjModel.from_xml_string("<mujoco/>"), 8, 8)
+        r.render()
+        r.close()
+    except Exception as e:  # noqa: BLE001 - an empty model fails to render for the machine only
+        why = str(e).splitlines()[0] if str(e) else type(e).__name__
+        return why if why.startswith("cannot render") else \
+            f"cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')}: {why}"
+    return None
+
+
 def cmd_encoder_train(args) -> int:
     import torch
 
     from window_bench.pixels.pretrain import pretrain_encoder, quality_table
 
+    why = cannot_render()
+    if why is not None:   # as bench teleop without a display: one line, exit code 2
+        print(f"error: {why}", file=sys.stderr)
+        return 2
     torch.set_num_threads(1)
     command = (f"bench encoder train --env {' '.join(args.env)} --episodes {args.episodes} "
                f"--heldout-episodes {args.heldout_episodes} --every {args.every} "
@@ -49,7 +73,7 @@ def cmd_encoder_info(args) -> int:
     try:
         load_backbone(args.path)
         record = weights_record(args.path)
-    except WeightsError as e:
+    except (WeightsError, OSError) as e:   # OSError: e.g. a name too long to look up
         print(f"error: {e}", file=sys.stderr)
         return 2
     if not record:
@@ -65,15 +89,14 @@ def cmd_encoder_info(args) -> int:
 
 def add_encoder_parser(sub) -> None:
     from window_bench import ENV_IDS
-    from window_bench.cli import _out_file, _positive, _seed
+    from window_bench.cli import _add_out_file, _positive, _seed
 
     enc = sub.add_parser("encoder", help="the pixel track's backbone: pretrain it in-domain "
                                          "or inspect a weights file")
     esub = enc.add_subparsers(dest="encoder_command", required=True)
     t = esub.add_parser("train", help="pretrain the ResNet-10 on rendered frames of "
                                       "scripted-installer episodes (docs/pixels.md)")
-    t.add_argument("--out", required=True, type=_out_file,
-                   help="weights file to write (.safetensors)")
+    _add_out_file(t, "weights file to write (.safetensors)", required=True)
     t.add_argument("--env", nargs="+", choices=ENV_IDS,
                    default=["WindowInstall-A-v0", "WindowInstall-B-v0"])
     t.add_argument("--episodes", type=_positive, default=64, help="training episodes")
