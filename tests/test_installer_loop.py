@@ -223,6 +223,56 @@ def test_reinsertion_and_no_progress_cues(env):
     assert kinds.index("safety") == 20 and sup.events[0][1] == "no_progress"
 
 
+def test_acquisition_cue_and_hand_back(env):
+    """B habit: the tool at the free panel for ``acquire_patience_steps`` without a latch is
+    a failed pick; that takeover hands back once the installer has lifted the panel."""
+    env.reset(seed=0)
+    at_panel = tuple(env.unwrapped.seated_pose[0] + (-0.3) * S.INSERTION_AXIS + [0, 0, 0.05])
+    far = tuple(np.asarray(at_panel) + [0, 0, 0.2])
+    sup = InstallerSupervisor(_profile(acquire_patience_steps=10))
+    kinds = _feed(env, sup, [_obs(vacuum=0.0, eef=at_panel)] * 15)
+    assert kinds.index("safety") == 9 and sup.events[0][1] == "acquisition"
+    sup.installer._set("transport")          # the installer has picked and lifted the panel
+    assert sup.intervene(_obs(vacuum=1.0, eef=at_panel), {}) is None and sup.active is None
+    # Off by default, and not while the tool is away from the panel.
+    assert _feed(env, InstallerSupervisor(_profile()), [_obs(vacuum=0.0, eef=at_panel)] * 15) \
+        == [None] * 15
+    sup = InstallerSupervisor(_profile(acquire_patience_steps=10))
+    assert _feed(env, sup, [_obs(vacuum=0.0, eef=far)] * 15) == [None] * 15
+
+
+def test_insertion_takeover_runs_on_to_the_seat(env):
+    inside = ENTRY_DEPTH + 0.02
+    wedged = [_obs(depth=inside, lateral=0.003, blocked=0.002)] * 4
+    for through, expect_active in ((False, None), (True, "safety")):
+        sup = InstallerSupervisor(_profile(lateral_threshold_mm=2.0,
+                                           seat_after_insertion_takeover=through))
+        _feed(env, sup, wedged)
+        sup.installer._set("insert")         # re-squared in front of the opening
+        sup.steps_in = 5
+        sup.intervene(wedged[0], {})
+        assert sup.active == expect_active
+
+
+def test_grasp_settle_holds_still_before_the_lift():
+    e = gym.make("WindowInstall-B-v0")
+    e.reset(seed=1)
+    inst = ScriptedInstaller(e, 0.0, 0.0, seed=1, grasp_settle_steps=10)
+    actions = []
+    while inst.phase != "lift" and len(actions) < 400:
+        actions.append(inst.act())
+        e.step(actions[-1])
+    phases = [p for _, p in inst.events]
+    assert phases[-3:] == ["descend", "settle_grasp", "lift"], phases
+    t_settle = dict((p, t) for t, p in inst.events)["settle_grasp"]
+    held = np.array(actions[t_settle + 1:])   # from the step after the latch was seen
+    assert len(held) == 10 and np.all(held[:, :6] == 0) and np.all(held[:, 6] == 1.0)
+    assert e.unwrapped.suction_engaged
+    with pytest.raises(ValueError, match=r"grasp_settle_steps = 51 is outside \[0, 50\]"):
+        ScriptedInstaller(e, grasp_settle_steps=51)
+    e.close()
+
+
 def test_safety_off_and_coverage(env):
     sup = InstallerSupervisor(_profile(), safety=False)
     assert _feed(env, sup, [_obs(vacuum=1.0)] * 2 + [_obs(vacuum=0.0)] * 3) == [None] * 5
@@ -248,13 +298,16 @@ def test_takeover_recovers_a_wedged_straight_push():
                             progress=False)
     assert r["takeovers"] >= 1 and r["takeover_minutes"] > 0
     assert set(r["safety_cues"]) <= {"suction_lost", "wedging", "stall", "reinsertion",
-                                     "no_progress"}
+                                     "acquisition", "no_progress"}
     assert 0 < r["takeover_fraction"] < 1
 
 
 # ---------------------------------------------------------------- profiles, demos
 def test_operator_profiles():
-    assert set(OPERATORS) == {"expert", "average", "novice"}
+    assert set(OPERATORS) == {"expert", "average", "novice", "attentive"}
+    att = OPERATORS["attentive"]
+    assert att.grasp_settle_steps > 0 and att.acquire_patience_steps > 0
+    assert att.seat_after_insertion_takeover and not OPERATORS["average"].grasp_settle_steps
     e, a, n = (OPERATORS[k] for k in ("expert", "average", "novice"))
     assert e.reaction_latency_steps < a.reaction_latency_steps < n.reaction_latency_steps
     assert e.stall_steps < a.stall_steps < n.stall_steps

@@ -35,7 +35,8 @@ class OperatorProfile:
     the per-step probability of a pause mid-motion and ``phase_hesitation`` the probability of
     a pause at each phase change, pauses lasting 1..``hesitation_max_steps`` steps;
     ``align_error_mm`` / ``align_error_deg`` bound the per-episode error of the visual
-    alignment (the installer's eye).
+    alignment (the installer's eye); ``grasp_settle_steps`` (B) is how long the installer
+    holds still once the cup latches before lifting (0: lifts at once).
 
     Takeovers: ``reaction_latency_steps`` between the cue and the takeover; trigger
     thresholds ``stall_steps`` (steps of blocked insertion), ``tilt_threshold_deg`` and
@@ -43,7 +44,12 @@ class OperatorProfile:
     ``max_reinsertions`` (entries into the opening before taking over), ``patience_steps``
     (steps without progress); ``recovery_noise`` (OU std on the takeover's motion commands);
     ``coverage_rate`` (probability per episode of one coverage intervention near the
-    opening); ``max_takeover_steps`` (hand back regardless after this long).
+    opening); ``max_takeover_steps`` (hand back regardless after this long);
+    ``acquire_patience_steps`` (B: the tool within reach of the free panel this many steps
+    without a latch is a failed acquisition - a takeover that picks the panel up and hands
+    back once it is lifted; 0: no such cue); ``seat_after_insertion_takeover`` (a takeover on
+    an insertion cue - wedging, stall, reinsertion - runs on through the retract and
+    reinsert to the seat instead of handing back in front of the opening).
     """
 
     name: str
@@ -66,6 +72,9 @@ class OperatorProfile:
     recovery_noise: float = 0.05
     coverage_rate: float = 0.05
     max_takeover_steps: int = 200
+    grasp_settle_steps: int = 0
+    acquire_patience_steps: int = 0
+    seat_after_insertion_takeover: bool = False
 
     def __post_init__(self):
         checks = {
@@ -86,11 +95,16 @@ class OperatorProfile:
             "recovery_noise": (self.recovery_noise, 0.0, 0.5),
             "coverage_rate": (self.coverage_rate, 0.0, 1.0),
             "max_takeover_steps": (self.max_takeover_steps, 1, 600),
+            "grasp_settle_steps": (self.grasp_settle_steps, 0, 50),
+            "acquire_patience_steps": (self.acquire_patience_steps, 0, 600),
         }
         for key, (value, lo, hi) in checks.items():
             if isinstance(value, bool) or not (lo <= value <= hi):
                 raise ValueError(f"OperatorProfile {self.name!r}: {key} = {value!r} is outside "
                                  f"[{lo}, {hi}]")
+        if not isinstance(self.seat_after_insertion_takeover, bool):
+            raise ValueError(f"OperatorProfile {self.name!r}: seat_after_insertion_takeover = "
+                             f"{self.seat_after_insertion_takeover!r} must be true or false")
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -106,6 +120,11 @@ OPERATORS: dict[str, OperatorProfile] = {
             tilt_threshold_deg=0.5, lateral_threshold_mm=1.5, max_reinsertions=2,
             patience_steps=80, recovery_noise=0.02, coverage_rate=0.10),
         OperatorProfile("average"),
+        # The average installer with the three habits the paper describes and the average
+        # profile lacks: waits for the cup to latch before lifting, takes over a failed
+        # acquisition, and takes a wedged insertion through to the seat.
+        OperatorProfile("attentive", grasp_settle_steps=10, acquire_patience_steps=20,
+                        seat_after_insertion_takeover=True),
         OperatorProfile(
             "novice", demo_speed=0.45, motion_noise=0.08, hesitation_rate=0.02,
             phase_hesitation=0.8, hesitation_max_steps=10, align_error_mm=2.0,
@@ -161,7 +180,8 @@ class HumanlikeInstaller:
         self.profile = get_operator(operator)
         p = self.profile
         self.env = env.unwrapped
-        self.installer = ScriptedInstaller(env, p.align_error_mm, p.align_error_deg, seed=seed)
+        self.installer = ScriptedInstaller(env, p.align_error_mm, p.align_error_deg, seed=seed,
+                                           grasp_settle_steps=p.grasp_settle_steps)
         self.rng = np.random.default_rng(seed)
         self.noise = OUNoise(6, p.motion_noise, p.noise_tau_steps, self.rng)
         self.reset(seed)

@@ -71,14 +71,18 @@ class ScriptedInstaller(_PanelPoseMixin):
     MAX_RECOVERIES = 8
 
     def __init__(self, env, align_error_mm: float = 1.0, align_error_deg: float = 0.5,
-                 seed: int | None = None):
+                 seed: int | None = None, grasp_settle_steps: int = 0):
         """``align_error_*``: half-widths of a per-episode uniform error in the installer's
         estimate of where the seat is (lateral per axis, and rotation about each axis) - the
         accuracy of one visual alignment. Contact stalls reveal it: each recovery
         re-measures and shrinks it 4-fold. ``align_error_mm=0, align_error_deg=0`` gives a
-        perfect eye."""
+        perfect eye. ``grasp_settle_steps`` (B): after the cup latches, hold still with the
+        vacuum on for this many steps before lifting (0: lift at once)."""
         if align_error_mm < 0 or align_error_deg < 0:
             raise ValueError(f"alignment errors must be >= 0, got {align_error_mm} mm, {align_error_deg} deg")
+        if isinstance(grasp_settle_steps, bool) or not 0 <= grasp_settle_steps <= 50:
+            raise ValueError(f"grasp_settle_steps = {grasp_settle_steps!r} is outside [0, 50]")
+        self.grasp_settle_steps = int(grasp_settle_steps)
         self.env = env.unwrapped
         self.align_error = (align_error_mm / 1000.0, np.deg2rad(align_error_deg))
         self.rng = np.random.default_rng(seed)
@@ -180,10 +184,18 @@ class ScriptedInstaller(_PanelPoseMixin):
         goal = face + R[:, 2] * 0.002
         close = float((tcp_pos - face) @ R[:, 2]) < 0.006
         if self.env.suction_engaged:
-            self._set("lift")
+            self._set("settle_grasp" if self.grasp_settle_steps else "lift")
             self.lift_start = p.copy()
         return pose_action(tcp_pos, tcp_mat, goal, tool, max_lin=0.4,
                            vacuum=ENGAGE if close else RELEASE)
+
+    def _settle_grasp(self):
+        """B: latched - hold still with the vacuum on before lifting, so the pick in the
+        demonstrations is descend, engage, wait, lift rather than a one-step switch."""
+        if self.phase_steps >= self.grasp_settle_steps:   # counted from the latch step
+            self._set("lift")
+            self.lift_start = self.env.panel_pose()[0].copy()
+        return np.array([0, 0, 0, 0, 0, 0, ENGAGE], dtype=np.float32)
 
     def _lift(self):
         """Clear the ground or the rack: straight up (and off the rack's backrest)."""

@@ -31,12 +31,17 @@ state. Safety takeovers fire on
   realized, for ``stall_steps`` steps;
 * ``reinsertion`` - more than ``max_reinsertions`` entries into the opening;
 * ``no_progress`` - no new best distance to the goal (the panel while not held, the seat
-  while held) for ``patience_steps`` steps.
+  while held) for ``patience_steps`` steps;
+* ``acquisition`` (profiles with ``acquire_patience_steps``) - the tool within
+  ``ACQUIRE_REACH`` of the free panel for that many steps without a latch: a failed or
+  unstable pick. The installer picks the panel up and hands back once it is lifted.
 
 After ``reaction_latency_steps`` the installer takes over with its recovery (retract,
 re-square, reinsert; or re-acquire and re-stage the panel) and hands back as soon as the
 state is back inside the recoverable envelope: the panel held, square and aligned in front of
-the opening (the installer's ``insert`` phase). Coverage interventions happen at most once
+the opening (the installer's ``insert`` phase). With ``seat_after_insertion_takeover`` a
+takeover on an insertion cue (:data:`INSERTION_CUES`) instead runs on to the seat, so its
+data shows the whole recovery of what failed. Coverage interventions happen at most once
 per episode, with probability ``coverage_rate``: when the panel is held near the opening, the
 installer inserts with a deliberately coarse eye (mild misalignment) until it has been
 through one contact recovery or reached the seat, exposing recovery behaviour that
@@ -63,7 +68,10 @@ FLAT_SLICES = {k: slice(int(_OFFSETS[i]), int(_OFFSETS[i + 1])) for i, k in enum
 FLAT_DIM = int(_OFFSETS[-1])
 
 #: Safety cues, in the order they are checked.
-CUES = ("suction_lost", "wedging", "stall", "reinsertion", "no_progress")
+CUES = ("suction_lost", "wedging", "stall", "reinsertion", "acquisition", "no_progress")
+#: Cues raised while the panel is being inserted.
+INSERTION_CUES = ("wedging", "stall", "reinsertion")
+ACQUIRE_REACH = 0.08          # m between the tool and the free panel's centre: "at the pick"
 
 ENTRY_DEPTH = -S.STOP_DEPTH   # seat-relative depth at which the leading face meets the wall
 SEATED_DEPTH = -0.002
@@ -107,11 +115,13 @@ class InstallerSupervisor:
         self.env = env.unwrapped
         self.rng = np.random.default_rng([0 if seed is None else seed, 7])
         self.installer = ScriptedInstaller(self.env, p.align_error_mm, p.align_error_deg,
-                                           seed=int(self.rng.integers(2**31)))
+                                           seed=int(self.rng.integers(2**31)),
+                                           grasp_settle_steps=p.grasp_settle_steps)
         self.noise = OUNoise(6, p.recovery_noise, p.noise_tau_steps, self.rng)
         self.events = []
         self.t = -1
         self.active: str | None = None      # kind of the running takeover
+        self.active_cue: str | None = None
         self.pending: tuple[int, str] | None = None   # (start step, cue)
         self.coverage_planned = self.coverage and self.rng.random() < p.coverage_rate
         self._clear_history()
@@ -125,6 +135,7 @@ class InstallerSupervisor:
         self.best_t = self.t
         self.off_axis_steps = 0
         self.vacuum_was_on = None
+        self.at_pick_steps = 0
 
     # ------------------------------------------------------------------ cues
     def _cue(self, f: dict) -> str | None:
@@ -155,9 +166,12 @@ class InstallerSupervisor:
         # Progress toward the goal: the panel while it is not held, the seat while it is.
         if vac:
             dist = float(np.linalg.norm(pos_rel))
+            self.at_pick_steps = 0
         else:
             panel = self.env.seated_pose[0] + pos_rel   # the opening's place is known
-            dist = 1.0 + float(np.linalg.norm(f["robot0_eef_pos"] - panel))
+            reach = float(np.linalg.norm(f["robot0_eef_pos"] - panel))
+            dist = 1.0 + reach
+            self.at_pick_steps = self.at_pick_steps + 1 if reach < ACQUIRE_REACH else 0
         if dist < self.best - 0.005:
             self.best, self.best_t = dist, self.t
 
@@ -173,6 +187,8 @@ class InstallerSupervisor:
                 return "stall"
         if self.entries > p.max_reinsertions:
             return "reinsertion"
+        if p.acquire_patience_steps and self.at_pick_steps >= p.acquire_patience_steps:
+            return "acquisition"
         if self.t - self.best_t >= p.patience_steps:
             return "no_progress"
         return None
@@ -186,7 +202,7 @@ class InstallerSupervisor:
 
     # ------------------------------------------------------------------ control
     def _start(self, kind: str, cue: str) -> None:
-        self.active = kind
+        self.active, self.active_cue = kind, cue
         self.events.append((self.t, cue, kind))
         self.steps_in = 0
         self.start_recoveries = 0
@@ -210,6 +226,10 @@ class InstallerSupervisor:
             return True
         if self.active == "coverage":
             return inst.phase == "seat" or (inst.phase == "insert" and inst.recoveries > 0)
+        if self.active_cue == "acquisition":
+            return inst.phase == "transport"    # picked up and lifted clear
+        if self.active_cue in INSERTION_CUES and self.profile.seat_after_insertion_takeover:
+            return False                        # on to the seat (or max_takeover_steps)
         return inst.phase == "insert" and self.steps_in > 1
 
     def intervene(self, obs, info: dict) -> tuple[np.ndarray, str] | None:
