@@ -12,7 +12,8 @@ the learner and two rules the harness applies:
 
 * :func:`hilserl_buffers_for` - where a step of a given provenance is stored. As in HIL-SERL,
   every online transition goes to the online buffer and transitions executed by a takeover
-  ALSO go to the demo buffer (:func:`takeover_segments` cuts them out of an episode log).
+  ALSO go to the demo buffer (the harness cuts them out of an episode log with
+  :func:`~window_bench.harness.agent.takeover_segments`, as ``takeovers_to_demo`` asks).
 * :func:`symmetric_sampler` - a ``sample() -> TensorDict`` that draws exactly half of every
   batch from the demo buffer (``window_bench.data.replay.mixed_batch`` does the same for two
   :class:`~window_bench.data.replay.ChunkReplay` buffers).
@@ -365,48 +366,6 @@ def hilserl_buffers_for(step_provenance: str) -> tuple[str, ...]:
         raise ValueError(f"step_provenance = {step_provenance!r} is not allowed: choose from "
                          f"{PROVENANCES}")
     return routes[step_provenance]
-
-
-def takeover_segments(episode: EpisodeLog) -> list[EpisodeLog]:
-    """The maximal runs of ``"takeover"`` steps of ``episode``, each as its own step log.
-
-    With ``h = 1`` every transition ``(s_t, a_t, r_t, s_t+1)`` stands alone, so a run
-    ``[t0, t1)`` becomes a log with observations ``s_t0 .. s_t1`` that ends ``terminated`` if
-    the episode terminated on its last step and ``truncated`` otherwise (its last
-    transition then bootstraps from ``s_t1``, as in the full episode). These are what the
-    harness adds to the demo buffer (:func:`hilserl_buffers_for`). Per-step fields are
-    sliced generically (rows ``T`` or ``T + 1``), so fields added to :class:`EpisodeLog`
-    later travel along; the chunk grid is reset to ``h = 1``.
-    """
-    episode.validate()
-    T = episode.T
-    takeover = np.asarray(episode.provenance) == "takeover"
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], takeover.astype(np.int8), [0]])))
-    segments = []
-    for t0, t1 in zip(edges[0::2], edges[1::2]):
-        kwargs = {}
-        for f in dataclasses.fields(episode):
-            value = getattr(episode, f.name)
-            if isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == T + 1:
-                value = value[t0:t1 + 1].copy()
-            elif isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == T:
-                value = value[t0:t1].copy()
-            elif isinstance(value, (dict, list)):
-                value = copy.deepcopy(value)
-            kwargs[f.name] = value
-        ends_episode = t1 == T
-        terminated = np.zeros(t1 - t0, bool)
-        truncated = np.zeros(t1 - t0, bool)
-        if ends_episode and bool(episode.terminated[-1]):
-            terminated[-1] = True
-        else:
-            truncated[-1] = True
-        kwargs.update(terminated=terminated, truncated=truncated, chunk_horizon=1,
-                      chunk_index=None, policy_chunk_start=None)
-        segment = type(episode)(**kwargs)
-        segment.validate()
-        segments.append(segment)
-    return segments
 
 
 def symmetric_sampler(sample_demo: Callable[[int], TensorDict],

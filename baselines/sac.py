@@ -259,6 +259,10 @@ class SACAgent(Agent):
     policy_kwargs: dict | None = None
     replay_buffer_class: type | None = None
 
+    @classmethod
+    def stage1_modules(cls) -> tuple[str, ...]:
+        return ()   # SB3 SAC has no offline pretraining: no Stage I to cache
+
     def __init__(self, model: SAC):
         self.model = model
         self.policy = self.policy_class(model)

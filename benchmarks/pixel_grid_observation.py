@@ -29,7 +29,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # run from a checkout
 import window_bench  # noqa: F401  (registers the envs)
 from window_bench.harness.evaluation import atomic_write_text, provenance
-from window_bench.harness.run import AgentPolicy, _eval_episode, load_policy_file
+from window_bench.harness.evaluation import AgentPolicy, _eval_episode, load_policy_file
 from window_bench.harness.seeds import eval_seeds
 from window_bench.installer.rollout import Rollout
 from window_bench.pixels.track import make_track_env

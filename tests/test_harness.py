@@ -177,7 +177,7 @@ class _Still:
 def test_eval_env_kwargs_rebuild_the_opening():
     """``Evaluator(..., env_kwargs)`` builds its env with them (the clearance check of
     ``bench eval --clearance``), and the scene's range check refuses a bad one."""
-    from window_bench.harness.run import Evaluator, _eval_rollout
+    from window_bench.harness.evaluation import Evaluator, _eval_rollout
 
     _, env = _eval_rollout(_Still, {}, "WindowInstall-A-v0", 5, {"clearance": 0.01})
     try:

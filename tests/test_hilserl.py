@@ -15,9 +15,9 @@ from tensordict import TensorDict
 
 from baselines.hilserl import (BATCH_KEYS, RLPD_CONFIG, VACUUM_COMMANDS, HILSERLAgent,
                                HILSERLConfig,
-                               hilserl_buffers_for, obs_normalizer, symmetric_sampler,
-                               takeover_segments)
+                               hilserl_buffers_for, obs_normalizer, symmetric_sampler)
 from window_bench.data.chunks import chunk_transitions
+from window_bench.harness.agent import takeover_segments
 from window_bench.installer.scripted import ScriptedInstaller
 from window_bench.data.steplog import EpisodeLog
 

@@ -310,8 +310,8 @@ def test_pixel_demos_replay_the_state_demos_exactly(backbone):
     from window_bench.envs.env import STATE_KEYS
     from window_bench.installer.rollout import Rollout
     from window_bench.installer.scripted import RandomPolicy
-    from window_bench.pixels.track import (check_track, make_track_env, pixel_demos,
-                                           proprio_normalizer)
+    from window_bench.harness.tracks import get_track
+    from window_bench.pixels.track import make_track_env, pixel_demos, proprio_normalizer
 
     env = make_track_env(ENV, "state", max_episode_steps=4)
     log = Rollout(env, RandomPolicy(env, seed=0), provenance="demo").run(seed=21)
@@ -329,16 +329,15 @@ def test_pixel_demos_replay_the_state_demos_exactly(backbone):
     with pytest.raises(RuntimeError, match="diverges on replay at step 0"):
         pixel_demos([tampered], ENV, backbone)
     with pytest.raises(ValueError, match="allowed: state, pixels"):
-        check_track("rgb")
-    from window_bench.pixels.track import track_agent_kind
-
-    assert track_agent_kind("qcfql", "pixels") == "qcfql-pixels"
-    assert track_agent_kind("hilserl", "state") == "hilserl"
-    assert track_agent_kind("hilserl", "pixels") == "hilserl-pixels"
-    assert track_agent_kind("sac", "pixels") == "sac-pixels"
-    assert track_agent_kind("act", "pixels") == "act-pixels"
+        get_track("rgb")
+    pixels = get_track("pixels")
+    assert pixels.agent_kind("qcfql") == "qcfql-pixels"
+    assert get_track("state").agent_kind("hilserl") == "hilserl"
+    assert pixels.agent_kind("hilserl") == "hilserl-pixels"
+    assert pixels.agent_kind("sac") == "sac-pixels"
+    assert pixels.agent_kind("act") == "act-pixels"
     with pytest.raises(ValueError, match="not available for the 'bc' agent"):
-        track_agent_kind("bc", "pixels")
+        pixels.agent_kind("bc")
     assert isinstance(make_track_env(ENV, "state").observation_space, gym.spaces.Box)
 
 
@@ -773,10 +772,11 @@ def test_bench_run_act_on_the_pixel_track(tmp_path, monkeypatch, demos_root):
     def run(name):
         r = Run("act", ENV, "smoke", 0, tmp_path / name, track="pixels", demos=demos_root,
                 progress=False, eval_workers=1)
-        before = {k: v.clone() for k, v in r.backbone.state_dict().items()}
+        backbone = r.observation.backbone     # the pixel track's, for this run
+        before = {k: v.clone() for k, v in backbone.state_dict().items()}
         out = r.train()
-        after = r.backbone.state_dict()
-        assert not any(p.requires_grad for p in r.backbone.parameters())
+        after = backbone.state_dict()
+        assert not any(p.requires_grad for p in backbone.parameters())
         assert all(torch.equal(before[k], after[k]) for k in before)     # frozen
         return out, json.loads((tmp_path / name / "results.json").read_text())
 

@@ -129,10 +129,9 @@ def test_schedule_starts_one_cell_per_stage1_group_first(tmp_path):
     g = _grid(tmp_path, GRID.replace('["qcfql-offline", "qcfql"]',
                                      '["qcfql-offline", "qcfql", "qcfql-no-warmstart", "act"]'))
     order = schedule(g.cells)
-    first = order[:3]                           # act is its own group; QC-FQL s0 and s1 groups
-    assert {c.stage1_group for c in first if c.stage1_group} == {
-        c.stage1_group for c in g.cells if c.stage1_group}
-    assert Cell("act", "WindowInstall-A-v0", 0, "smoke").stage1_group is None
+    first = order[:4]                  # act s0 and s1 are groups of their own; QC-FQL s0, s1
+    assert {c.stage1_group for c in first} == {c.stage1_group for c in g.cells}
+    assert Cell("sac", "WindowInstall-A-v0", 0, "smoke").stage1_group is None   # no Stage I
 
 
 def test_stage1_key_covers_every_agent_with_a_stage_i_on_both_tracks():
@@ -142,17 +141,21 @@ def test_stage1_key_covers_every_agent_with_a_stage_i_on_both_tracks():
     valid, and a pixel kind also hashes the pixel front end."""
     from window_bench.harness.methods import METHODS
     from window_bench.harness.stage1 import _source_sha256, key_material
-    from window_bench.pixels.track import track_agent_kind
+    from window_bench.harness.tracks import get_track
 
     kinds = {m.agent for m in METHODS.values() if m.offline_pretrain}
     assert kinds == {"qcfql", "hilserl", "act"}
-    code = lambda kind: key_material(kind, {}, 1, 1, "d", 0)["code_sha256"]  # noqa: E731
+    code = lambda kind, track: key_material(kind, track, {}, 1, 1, "d", 0)["code_sha256"]  # noqa: E731
     for kind in kinds:
-        pixel = track_agent_kind(kind, "pixels")
-        assert code(kind) == _source_sha256(f"baselines.{kind}", "window_bench.data.replay")
-        assert code(pixel) not in (code(kind), None)
-    with pytest.raises(ValueError, match="'sac' has no Stage I"):
-        key_material("sac", {}, 1, 1, "d", 0)
+        pixel = get_track("pixels").agent_kind(kind)
+        assert code(kind, "state") == _source_sha256(f"baselines.{kind}",
+                                                     "window_bench.data.replay")
+        assert code(pixel, "pixels") == _source_sha256(
+            f"baselines.{kind}", "window_bench.pixels.agent", "window_bench.pixels.encoder",
+            "window_bench.data.replay")
+    for kind, track in (("sac", "state"), ("sac-pixels", "pixels")):
+        with pytest.raises(ValueError, match=f"'{kind}' has no Stage I"):
+            key_material(kind, track, {}, 1, 1, "d", 0)
 
 
 def test_cell_status_done_partial_new_conflict(tmp_path):
@@ -297,7 +300,8 @@ def test_tiny_grid_on_ray_resumes_shares_stage1_and_makes_its_tables(tmp_path):
     assert all("rc" not in c for c in again["cells"].values())     # nothing ran again
     t2 = build(out, tmp_path / "docs", figures=False)["table2.md"]
     rows = [ln for ln in t2.splitlines() if ln.startswith("| Ours (offline")]
-    assert len(rows) == 2 and all("| 2 |" in r and "M = 2" in r for r in rows)
+    assert len(rows) == 2 and all("| 2 |" in r for r in rows)          # n = 2 seeds
+    assert "`smoke` profile, final evaluation with M = 2 on the" in t2  # the rows' protocol
 
 
 # ---------------------------------------------------------------------------- hostile grids
@@ -328,7 +332,7 @@ def test_agent_config_values_are_checked_when_the_grid_is_loaded(tmp_path, line,
 
 @pytest.mark.parametrize("head, message", [
     ('name = "../../x"\n', "name = '../../x'; allowed: one file name"),
-    ('operator = "../../x"\n', "operator = '../../x'; allowed: average, expert, novice"),
+    ('operator = "../../x"\n', "operator = '../../x'; allowed: attentive, average, expert, novice"),
     ("table = 9\n", "table = 9; allowed: an integer in 2..7"),
 ])
 def test_names_that_become_paths_are_checked(tmp_path, head, message):

@@ -70,12 +70,15 @@ def test_rows_group_seeds_and_put_the_paper_beside_ours(tmp_path):
     assert len(rows) == 4                       # test and dev seeds never share a row
     pages = build(runs, tmp_path / "out", figures=False)
     t2 = pages["table2.md"]
-    row = next(ln for ln in t2.splitlines() if ln.startswith("| Ours (complete pipeline)")
-               and "*dev*" not in ln)
-    assert "| 3 |" in row and "**90**" in row and "80 · 90 · 100" in row
+    row = next(ln for ln in t2.splitlines() if ln.startswith("| Ours (complete pipeline) |"))
+    assert row.startswith("| Ours (complete pipeline) | 3 | **90** [80, 100] |")
     assert "100 [96, 100]" in row               # the paper's number and its Wilson interval
+    assert "80 · 90 · 100" not in row           # a cell is mean [interval]; the seeds are below
+    assert "    | Ours (complete pipeline) | 0 · 1 · 2 | 80 · 90 · 100 |" in t2
     dev = next(ln for ln in t2.splitlines() if "*dev*" in ln and ln.startswith("| Ours"))
-    assert "**50**" in dev and "M = 20" in dev
+    assert dev.startswith("| Ours (complete pipeline), M = 20, *dev* | 1 | **50** |")
+    assert "Unless a row says otherwise: `state` track, `smoke` profile, final evaluation " \
+           "with M = 100 on the held-out test seeds" in t2
     assert "development seeds" in t2
     t6 = pages["table6.md"]
     assert "| 5 |" in t6 and "| 20 |" in t6 and "82 [74, 88]" in t6
@@ -85,9 +88,48 @@ def test_rows_group_seeds_and_put_the_paper_beside_ours(tmp_path):
 def test_overrides_are_their_own_row_without_a_paper_number(tmp_path):
     runs = tmp_path / "runs"
     _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.6, overrides={"policy_ema": 0.0})
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.7)
     t2 = build(runs, tmp_path / "out", figures=False)["table2.md"]
-    row = next(ln for ln in t2.splitlines() if "policy_ema" in ln and ln.startswith("|"))
+    row = next(ln for ln in t2.splitlines() if ln.startswith("| Ours (complete pipeline), variant"))
+    assert row.startswith("| Ours (complete pipeline), variant 1 | 1 | **60** |")
     assert row.count("| – |") >= 3             # no paper numbers for our variant
+    assert "policy_ema" not in row              # the overrides are a note, not the row's name
+    assert "- Variant 1: `qcfql` with `policy_ema=0.0`.\n" in t2
+    plain = next(ln for ln in t2.splitlines() if ln.startswith("| Ours (complete pipeline) |"))
+    assert "| **70** | 100 [96, 100] |" in plain
+
+
+def test_a_variant_that_is_a_preset_is_named_by_it(tmp_path):
+    from window_bench.harness.methods import get_preset
+
+    runs = tmp_path / "runs"
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.1,
+             overrides=get_preset("qcfql-as-published"))
+    t2 = build(runs, tmp_path / "out", figures=False)["table2.md"]
+    note = next(ln for ln in t2.splitlines() if ln.startswith("- Variant 1: `qcfql` with"))
+    assert note.endswith(" (the preset `qcfql-as-published`).")
+
+
+def test_row_names_say_only_what_differs_from_the_usual_run():
+    from window_bench.harness.tables import RowKey, RowNames
+
+    def key(**kw):
+        base = dict(setting="A", method="qcfql", h=10, overrides=(), profile="cpu",
+                    seed_set="test", M=100, track="state")
+        return RowKey(**{**base, **kw})
+
+    plain, pix, dev, smoke = key(), key(track="pixels"), key(seed_set="dev", M=20), \
+        key(profile="smoke")
+    variant = key(overrides=(("policy_ema", "0.0"),))
+    names = RowNames([plain, plain, pix, dev, smoke, variant, key(method="sac", h=1)])
+    assert names.usual == ("state", "cpu", "test", 100)
+    assert [names.method(k) for k in (plain, pix, dev, smoke, variant)] == [
+        "Ours (complete pipeline)", "Ours (complete pipeline), pixels",
+        "Ours (complete pipeline), M = 20, *dev*", "Ours (complete pipeline), smoke profile",
+        "Ours (complete pipeline), variant 1"]
+    assert names.method(dev, markdown=False) == "Ours (complete pipeline), M = 20, dev"
+    assert names.horizon(variant) == "10, variant 1"
+    assert RowNames([dev]).method(dev) == "Ours (complete pipeline), *dev*"   # always marked
 
 
 def test_running_curves_window_and_rates():
@@ -110,6 +152,42 @@ def test_figures_written(tmp_path):
         assert (tmp_path / "out" / name).stat().st_size > 1000
 
 
+def test_figure_legends_name_lines_as_the_table_names_rows(tmp_path, monkeypatch):
+    import matplotlib.figure
+
+    runs = tmp_path / "runs"
+    eps = [{"steps": 300, "success": i > 5, "takeover_steps": 20} for i in range(30)]
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.9, episodes=eps)
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.2, episodes=eps, track="pixels")
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.1, episodes=eps,
+             overrides={"policy_ema": 0.0, "prior_data": "replay"})
+    legends, legend = [], matplotlib.figure.Figure.legend
+    monkeypatch.setattr(matplotlib.figure.Figure, "legend", lambda self, handles, labels, **kw:
+                        legends.append(labels) or legend(self, handles, labels, **kw))
+    t2 = build(runs, tmp_path / "out")["table2.md"]
+    assert legends == [["Ours (complete pipeline)", "Ours (complete pipeline), pixels",
+                        "Ours (complete pipeline), variant 1"]]      # Fig. 11 (B) has no rows
+    for label in legends[0]:
+        assert f"| {label} | 1 |" in t2
+
+
+def test_tables_never_write_the_hand_written_results_index(tmp_path, monkeypatch):
+    """docs/results/index.md is the hand-written overview: bench tables writes its list of
+    tables to tables.md and leaves index.md alone, --force or not."""
+    from window_bench.cli import main
+    from window_bench.harness.tables import outputs
+
+    monkeypatch.chdir(tmp_path)
+    _results(tmp_path / "runs", "qcfql", "WindowInstall-A-v0", 0, 0.8)
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / "index.md").write_text("hand-written overview")
+    assert tmp_path / "o" / "index.md" not in outputs(tmp_path / "o")
+    for force in ([], ["--force"], ["--force"]):
+        assert main(["tables", "--runs", "runs", "--out", "o", "--no-figures", *force]) == 0
+    assert (tmp_path / "o" / "index.md").read_text() == "hand-written overview"
+    assert "[Table 2: Experiment A" in (tmp_path / "o" / "tables.md").read_text()
+
+
 def test_committed_results_pages_equal_bench_tables(tmp_path, monkeypatch, capsys):
     """docs/results/*.md and README.md's headline are byte for byte what the documented
     command (``bench tables --runs leaderboard/runs --out docs/results --readme README.md
@@ -122,7 +200,7 @@ def test_committed_results_pages_equal_bench_tables(tmp_path, monkeypatch, capsy
     assert main(["tables", "--runs", "leaderboard/runs", "--out", str(tmp_path / "results"),
                  "--readme", str(readme), "--force"]) == 0
     assert "skipped" not in capsys.readouterr().err     # every committed raw file passes
-    for name in [f"table{t}.md" for t in range(2, 8)] + ["index.md"]:
+    for name in [f"table{t}.md" for t in range(2, 8)] + ["tables.md"]:
         assert (REPO / "docs" / "results" / name).read_bytes() == \
             (tmp_path / "results" / name).read_bytes(), \
             f"docs/results/{name} differs from bench tables' output: run bench tables"
@@ -141,8 +219,10 @@ def test_table7_from_evaluation_cells(tmp_path):
             "success_rate": k / 100, "cycle_time_s": 25.0, "pr_S": 1.0, "pr_I_given_S": 0.95,
             "pr_T_given_I": min(1.0, k / 95)}))
     t7 = build(runs, tmp_path / "out", figures=False)["table7.md"]
-    row = next(ln for ln in t7.splitlines() if ln.startswith("| B | 0.6x0.6"))
-    assert "**93**" in row and "90 · 96" in row and "| 87 [79, 92] |" in row
+    row = next(ln for ln in t7.splitlines() if ln.startswith("| B, 0.6x0.6 |"))
+    assert "| 2 | **93** [90, 96] | 87 [79, 92] |" in row
+    seeds = next(ln for ln in t7.splitlines() if ln.startswith("    | B, 0.6x0.6 |"))
+    assert "| 0 · 1 | 90 · 96 |" in seeds
 
 
 def test_state_and_pixel_runs_of_one_method_are_different_rows(tmp_path):
@@ -160,8 +240,9 @@ def test_state_and_pixel_runs_of_one_method_are_different_rows(tmp_path):
     lines = [ln for ln in t2.splitlines() if ln.startswith("| Ours (offline-only)")]
     assert len(lines) == 2
     state, pixels = lines                       # the state row first
-    assert "| state, smoke, M = 100 | 2 |" in state and "**80**" in state
-    assert "| pixels, smoke, M = 100 | 1 |" in pixels and "**20**" in pixels
+    assert state.startswith("| Ours (offline-only) | 2 | **80** [")
+    assert pixels.startswith("| Ours (offline-only), pixels | 1 | **20** |")
+    assert "Unless a row says otherwise: `state` track" in t2
     assert "`state` = privileged state" in t2 and "`pixels` = the paper's observation" in t2
 
 
@@ -352,7 +433,7 @@ def test_a_bad_table7_evaluation_is_skipped_with_one_line_and_not_rendered(tmp_p
     t7 = build(runs, tmp_path / "out", figures=False)["table7.md"]
     line = _one_warning(capsys.readouterr().err, bad)
     assert line.startswith(f"warning: skipped: {bad}: ") and reason in line
-    row = next(ln for ln in t7.splitlines() if ln.startswith("| B | 0.6x0.6"))
+    row = next(ln for ln in t7.splitlines() if ln.startswith("| B, 0.6x0.6 |"))
     assert "| 1 | **90** |" in row                        # seed 0's evaluation alone
     assert "750" not in t7 and "nan" not in t7 and "-200" not in t7
 
@@ -433,7 +514,7 @@ def test_tables_write_only_under_out_and_never_overwrite_without_force(tmp_path,
     assert readme.read_text().count("old") == 1       # no --readme: not touched
     assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")
                   if "runs" not in p.parts) == ["README.md", "o"] + \
-        [f"o/{n}" for n in ("index.md", *(f"table{t}.md" for t in range(2, 8)))]
+        [f"o/{n}" for n in (*(f"table{t}.md" for t in range(2, 8)), "tables.md")]
     (tmp_path / "o" / "table2.md").write_text("mine")
     capsys.readouterr()
     assert main(["tables", "--runs", "runs", "--out", "o", "--no-figures"]) == 2

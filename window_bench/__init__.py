@@ -8,6 +8,9 @@ what each part owns:
   demonstrations and teleoperation;
 * :mod:`window_bench.data` - step logs, chunk transitions, Minari datasets, replay, effort;
 * :mod:`window_bench.harness` - methods and profiles, training runs, evaluation, leaderboard;
+* :mod:`window_bench.pixels` - the pixel observation track;
+* :mod:`window_bench.catalog` - the agents, tracks and presets the harness runs, by name
+  (imported here, so that every process registers them);
 * :mod:`window_bench.cli` - the ``bench`` command on top.
 
 The names users import most (``WindowInstallEnv``, ``ScriptedInstaller``, ``Run``, ...) are
@@ -69,3 +72,7 @@ def __getattr__(name):
 
 
 __all__ = ["ENV_IDS", "OOD_PANELS", *_EXPORTS]
+
+# The harness's registries, filled in every process that imports the package (a spawned
+# evaluation worker too); it imports no learner.
+from window_bench import catalog  # noqa: E402,F401

@@ -20,120 +20,12 @@ import argparse
 import collections
 import json
 import sys
+import textwrap
 from pathlib import Path
 
-import window_bench
-
+from window_bench import cli_args as arg
 from window_bench.harness.evaluation import atomic_write_text, evaluate, provenance, summarize
-from window_bench.harness.seeds import MAX_SEED
 from window_bench.installer.scripted import CONTROLLERS
-
-
-def _env_id(value: str) -> str:
-    if value not in window_bench.ENV_IDS:
-        raise argparse.ArgumentTypeError(
-            f"unknown env {value!r}; registered: {', '.join(window_bench.ENV_IDS)}")
-    return value
-
-
-def checked_number(cast, ok, allowed: str):
-    """An argparse type: ``cast(value)`` that satisfies ``ok``, else a one-line error naming
-    the value and the ``allowed`` range (``">= 1"``, ``"in (0, 1]"``)."""
-    kind = "an integer" if cast is int else "a number"
-
-    def parse(value: str):
-        try:
-            v = cast(value)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {kind}, got {value!r}") from None
-        if not ok(v):
-            raise argparse.ArgumentTypeError(f"must be {allowed}, got {v}")
-        return v
-    return parse
-
-
-def _int_at_least(lo: int):
-    return checked_number(int, lambda v: v >= lo, f">= {lo}")
-
-
-def _int_in(lo: int, hi: int):
-    return checked_number(int, lambda v: lo <= v <= hi, f"in {lo}..{hi}")
-
-
-_positive = _int_at_least(1)
-_seed = _int_in(0, MAX_SEED)
-_workers = _int_in(1, 64)   # evaluation processes: one per core is the most that helps
-
-
-def _clearance_mm(value: str) -> float:
-    """``--clearance``: millimetres per side within the scene's range (0.5-20 mm)."""
-    from window_bench.envs.scene import CLEARANCE_RANGE
-
-    lo, hi = (1000.0 * v for v in CLEARANCE_RANGE)
-    try:
-        mm = float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{value!r} is not a number of millimetres") from None
-    if not lo <= mm <= hi:
-        raise argparse.ArgumentTypeError(f"{value} mm is outside the supported range "
-                                         f"[{lo:g}, {hi:g}] mm per side")
-    return mm
-
-
-def _out_file(value: str) -> str:
-    """A file this user can create: checked before any work, not after it."""
-    from window_bench.harness.files import check_out_dir
-
-    try:
-        check_out_dir(Path(value).parent)
-        is_dir = Path(value).is_dir()
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e).removeprefix("--out ")) from None
-    except OSError as e:   # e.g. a name longer than the file system allows
-        raise argparse.ArgumentTypeError(f"{value}: cannot be used ({e.strerror})") from None
-    if is_dir:
-        raise argparse.ArgumentTypeError(f"{value} is a directory; give a file name")
-    return value
-
-
-def _writable_dir(option: str):
-    """An argparse type: a directory this user can write into or create (``option`` is how
-    the error names it)."""
-    def parse(value: str) -> str:
-        from window_bench.harness.files import check_out_dir
-
-        try:
-            check_out_dir(value, option)
-        except ValueError as e:
-            raise argparse.ArgumentTypeError(str(e).removeprefix(f"{option} ")) from None
-        return value
-    return parse
-
-
-_out_dir = _writable_dir("--out")
-
-
-def _add_out_file(p, help: str, required: bool = False) -> None:
-    """``--out FILE`` and ``--force``; :func:`main` refuses an existing FILE without --force."""
-    p.add_argument("--out", type=_out_file, required=required, help=help)
-    p.add_argument("--force", action="store_true", help="replace --out if it exists")
-    p.set_defaults(outputs=lambda args: [args.out] if args.out else [])
-
-
-class _Parser(argparse.ArgumentParser):
-    """Bad input is one line on stderr and exit code 2 (argparse adds the whole usage)."""
-
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-def _choice(options, what: str):
-    def parse(value: str) -> str:
-        if value not in options:
-            raise argparse.ArgumentTypeError(f"unknown {what} {value!r}; choose from "
-                                             f"{', '.join(options)}")
-        return value
-    return parse
 
 
 def _fmt_rate(s: dict) -> str:
@@ -325,7 +217,7 @@ def cmd_run(args) -> int:
             except ValueError:
                 raise ValueError(f"--acceptance-noise {fp} {fn} {delay}: expected two rates "
                                  f"in [0, 1] and a delay in steps (an integer >= 0)") from None
-        from window_bench.harness.run import parse_overrides
+        from window_bench.harness.agent import parse_overrides
 
         run = Run(args.method, args.env, args.profile, args.seed, args.out, resume=args.resume,
                   operator=args.operator, demos=args.demos, acceptance_noise=noise,
@@ -355,7 +247,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from window_bench.harness.run import evaluate_policy_file
+    from window_bench.harness.evaluation import evaluate_policy_file
 
     try:
         r = evaluate_policy_file(args.checkpoint, args.episodes, args.eval_workers,
@@ -374,20 +266,6 @@ def cmd_eval(args) -> int:
     if args.out:
         atomic_write_text(args.out, json.dumps(r, indent=1))
     return 0
-
-
-def _dir_path(value: str) -> str:
-    """A directory to read, or to create: never a path through an existing file."""
-    probe = Path(value)
-    try:
-        while not probe.exists() and probe != probe.parent:
-            probe = probe.parent
-    except OSError as e:   # e.g. a name longer than the file system allows
-        raise argparse.ArgumentTypeError(f"{value}: cannot be used ({e.strerror})") from None
-    if probe.exists() and not probe.is_dir():
-        where = "" if probe == Path(value) else f": {probe}"
-        raise argparse.ArgumentTypeError(f"{value}{where} is a file, not a directory")
-    return value
 
 
 def _refuse_overwrite(paths, force: bool) -> None:
@@ -492,7 +370,7 @@ def cmd_video(args) -> int:
     try:
         check_args(args.cameras, args.size, args.fps, args.policy)
         if args.policy not in CONTROLLERS:   # a foreign or damaged file: before --out is made
-            from window_bench.harness.run import load_policy_file
+            from window_bench.harness.evaluation import load_policy_file
 
             load_policy_file(args.policy)
         rows = record(args.env, args.policy, list(range(args.seed, args.seed + args.episodes)),
@@ -508,16 +386,40 @@ def cmd_video(args) -> int:
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """Every option's default in its help line; descriptions kept as written."""
+    """Every option's default in its help line (not for a required option, nor a default of
+    None: the help says what happens then); descriptions kept as written."""
+
+    def _get_help_string(self, action):
+        if action.required or action.default is None:
+            return action.help
+        return super()._get_help_string(action)
 
 
-class _SubParser(argparse.ArgumentParser):
+class _Subcommands(argparse._SubParsersAction):
+    """Subcommands whose ``--help`` opens with the line ``bench --help`` shows for them."""
+
+    def add_parser(self, name, **kwargs):
+        if kwargs.get("help") and "description" not in kwargs:
+            text = kwargs["help"][0].upper() + kwargs["help"][1:]
+            kwargs["description"] = textwrap.fill(text + ("" if text.endswith(".") else "."), 79)
+        return super().add_parser(name, **kwargs)
+
+
+class _Parser(argparse.ArgumentParser):
+    """Bad input is one line on stderr and exit code 2 (argparse adds the whole usage)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.register("action", "parsers", _Subcommands)
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class _SubParser(_Parser):
     def __init__(self, *args, **kwargs):
         kwargs.setdefault("formatter_class", _HelpFormatter)
         super().__init__(*args, **kwargs)
-
-    def error(self, message):
-        _Parser.error(self, message)
 
 
 ENV_HELP = "registered env id: WindowInstall-{A,B}[-Panel40x40|-Panel60x60|-Panel60x40]-v0"
@@ -528,45 +430,45 @@ def build_parser() -> argparse.ArgumentParser:
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True, parser_class=_SubParser)
     i = sub.add_parser("install", help="run a reference controller and print per-episode stages")
-    i.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
-    i.add_argument("--episodes", type=_positive, default=3, help="episodes (>= 1)")
-    i.add_argument("--seed", type=_seed, default=0, help="first episode seed")
+    i.add_argument("--env", type=arg.env_id, default="WindowInstall-A-v0", help=ENV_HELP)
+    i.add_argument("--episodes", type=arg.positive, default=3, help="episodes (>= 1)")
+    i.add_argument("--seed", type=arg.seed, default=0, help="first episode seed")
     i.add_argument("--controller", choices=sorted(CONTROLLERS), default="installer",
                    help="reference controller")
-    _add_out_file(i, "also write the episodes and summary to this JSON file")
+    arg.add_out_file(i, "also write the episodes and summary to this JSON file")
     i.set_defaults(func=cmd_install)
     c = sub.add_parser("calibrate", help="difficulty calibration: success and failure modes per controller")
-    c.add_argument("--env", type=_env_id, nargs="+", default=["WindowInstall-A-v0", "WindowInstall-B-v0"],
+    c.add_argument("--env", type=arg.env_id, nargs="+", default=["WindowInstall-A-v0", "WindowInstall-B-v0"],
                    help=ENV_HELP + "; one or more")
     c.add_argument("--controllers", nargs="+", choices=sorted(CONTROLLERS),
                    default=["installer", "straight_push", "random"], help="reference controllers")
-    c.add_argument("--episodes", type=_positive, default=100, help="episodes per env and controller")
-    c.add_argument("--seed", type=_seed, default=0, help="first episode seed")
-    c.add_argument("--out", type=_out_dir, default="runs/calibration", help="results directory (resumes if present)")
+    c.add_argument("--episodes", type=arg.positive, default=100, help="episodes per env and controller")
+    c.add_argument("--seed", type=arg.seed, default=0, help="first episode seed")
+    c.add_argument("--out", type=arg.out_dir, default="runs/calibration", help="results directory (resumes if present)")
     c.set_defaults(func=cmd_calibrate)
     from window_bench.installer.operators import OPERATORS
 
     d = sub.add_parser("demos", help="collect successful human-like demonstrations (Minari)")
-    d.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
-    d.add_argument("--n", type=_positive, default=50, help="successful demonstrations to keep")
-    d.add_argument("--out", type=_out_dir, default="data", help="Minari datasets root (resumes if present)")
+    d.add_argument("--env", type=arg.env_id, default="WindowInstall-A-v0", help=ENV_HELP)
+    d.add_argument("--n", type=arg.positive, default=50, help="successful demonstrations to keep")
+    d.add_argument("--out", type=arg.out_dir, default="data", help="Minari datasets root (resumes if present)")
     d.add_argument("--operator", choices=sorted(OPERATORS), default="average",
                    help="operator profile of the demonstrator")
-    d.add_argument("--seed", type=_seed, default=0, help="seed of the first attempt")
-    d.add_argument("--max-attempts", type=_positive, default=None,
+    d.add_argument("--seed", type=arg.seed, default=0, help="seed of the first attempt")
+    d.add_argument("--max-attempts", type=arg.positive, default=None,
                    help="give up after this many episodes (None: 2 n)")
     d.set_defaults(func=cmd_demos)
     v = sub.add_parser("supervise", help="takeover counts and minutes of operator profiles "
                                          "supervising a reference controller")
-    v.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
+    v.add_argument("--env", type=arg.env_id, default="WindowInstall-A-v0", help=ENV_HELP)
     v.add_argument("--controller", choices=sorted(CONTROLLERS), default="random",
                    help="the supervised reference controller")
     v.add_argument("--operator", choices=sorted(OPERATORS), nargs="+",
                    default=["expert", "average", "novice"], help="operator profiles, one after another")
-    v.add_argument("--episodes", type=_positive, default=20, help="episodes per operator")
-    v.add_argument("--seed", type=_seed, default=0, help="first episode seed")
-    v.add_argument("--h", type=_positive, default=10, help="chunk grid of the supervised policy")
-    _add_out_file(v, "write the rows to this JSON file")
+    v.add_argument("--episodes", type=arg.positive, default=20, help="episodes per operator")
+    v.add_argument("--seed", type=arg.seed, default=0, help="first episode seed")
+    v.add_argument("--h", type=arg.positive, default=10, help="chunk grid of the supervised policy")
+    arg.add_out_file(v, "write the rows to this JSON file")
     v.set_defaults(func=cmd_supervise)
     from window_bench.installer.teleop import add_teleop_parser
 
@@ -576,25 +478,29 @@ def build_parser() -> argparse.ArgumentParser:
     add_encoder_parser(sub)
     from window_bench.harness.methods import METHODS, PROFILES
 
-    m = sub.add_parser("methods", help="print Table 1 (methods and their components)")
+    m = sub.add_parser("methods", help="print Table 1 (the methods and their components) and "
+                                       "the budget profiles")
     m.set_defaults(func=cmd_methods)
     r = sub.add_parser("run", help="train one method through the matched-budget harness")
-    r.add_argument("--method", required=True, type=_choice(METHODS, "method"),
+    r.add_argument("--method", required=True, type=arg.choice(METHODS, "method"),
                    help="Table 1 method: " + ", ".join(METHODS))
-    r.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
-    r.add_argument("--profile", type=_choice(PROFILES, "profile"), default="smoke",
-                   help="budget profile: " + ", ".join(PROFILES))
-    r.add_argument("--seed", type=_seed, default=0, help="run seed (agent, envs, evaluation order)")
-    r.add_argument("--out", type=_out_dir, required=True, help="run directory")
+    r.add_argument("--env", type=arg.env_id, default="WindowInstall-A-v0", help=ENV_HELP)
+    r.add_argument("--profile", type=arg.choice(PROFILES, "profile"), choices=list(PROFILES),
+                   default="smoke",
+                   help="budget profile (bench methods lists what each one sets)")
+    r.add_argument("--seed", type=arg.seed, default=0, help="run seed (agent, envs, evaluation order)")
+    r.add_argument("--out", type=arg.out_dir, required=True, help="run directory")
     r.add_argument("--resume", action="store_true", help="continue the run saved in --out")
     r.add_argument("--operator", choices=sorted(OPERATORS), default="average",
                    help="operator profile for demonstrations and takeovers")
-    r.add_argument("--demos", type=_dir_path, help="Minari datasets root holding the "
+    r.add_argument("--demos", type=arg.dir_path, help="Minari datasets root holding the "
                    "demonstrations (None: collect them into OUT/demos)")
     r.add_argument("--acceptance-noise", nargs=3, metavar=("FP", "FN", "DELAY"), default=None,
                    help="train on a noisy acceptance sensor: false-positive rate per step, "
                         "false-negative rate, delay in steps (evaluation keeps true acceptance)")
-    r.add_argument("--track", choices=["state", "pixels"], default="state",
+    from window_bench.harness.tracks import DEFAULT_TRACK, TRACKS
+
+    r.add_argument("--track", choices=list(TRACKS), default=DEFAULT_TRACK,
                    help="observation track: the privileged state, or the paper's two RGB views "
                         "+ proprioception through the frozen ResNet-10 (docs/pixels.md)")
     r.add_argument("--encoder-weights", metavar="PATH",
@@ -605,49 +511,49 @@ def build_parser() -> argparse.ArgumentParser:
                         "e.g. act_noise_scale=0.0 alpha=100")
     from window_bench.harness.seeds import MAX_EPISODES, SEED_SETS
 
-    r.add_argument("--h", type=_positive, default=None,
+    r.add_argument("--h", type=arg.positive, default=None,
                    help="chunk horizon of a QC-FQL method (Tables 5/6; default: the method's)")
-    r.add_argument("--final-episodes", type=_int_in(1, MAX_EPISODES), default=None, metavar="M",
+    r.add_argument("--final-episodes", type=arg.int_in(1, MAX_EPISODES), default=None, metavar="M",
                    help="evaluate the final checkpoint with M fresh rollouts (reported runs: "
                         "100 on the test seeds); default: the last checkpoint's evaluation")
     r.add_argument("--final-seed-set", choices=sorted(SEED_SETS), default="dev",
                    help="seeds of the final evaluation: dev (tuning) or test (reported)")
-    r.add_argument("--stage1-cache", type=_writable_dir("--stage1-cache"), default=None,
+    r.add_argument("--stage1-cache", type=arg.writable_dir("--stage1-cache"), default=None,
                    metavar="DIR",
                    help="share Stage I with runs of the same agent config, h, demos and seed "
                         "through this cache directory (bench sweep sets it)")
-    r.add_argument("--pixel-demos-cache", type=_writable_dir("--pixel-demos-cache"),
+    r.add_argument("--pixel-demos-cache", type=arg.writable_dir("--pixel-demos-cache"),
                    default=None, metavar="DIR",
                    help="--track pixels: keep the demos re-observed under the encoder in this "
                         "cache directory (default: pixel_cache/ in the demos directory)")
-    r.add_argument("--eval-workers", type=_workers, default=None, metavar="N",
+    r.add_argument("--eval-workers", type=arg.workers, default=None, metavar="N",
                    help="evaluation processes per checkpoint, 1-64 (default: the profile's; 1 "
                         "evaluates in the training process, so a run uses one core)")
     r.set_defaults(func=cmd_run)
     e = sub.add_parser("eval", help="evaluate a saved policy (interventions off)")
     e.add_argument("checkpoint", help="a policies/step_*.safetensors file of a run")
-    e.add_argument("--episodes", type=_int_in(1, MAX_EPISODES), default=100,
+    e.add_argument("--episodes", type=arg.int_in(1, MAX_EPISODES), default=100,
                    help="evaluation episodes")
-    e.add_argument("--env", type=_env_id, default=None,
+    e.add_argument("--env", type=arg.env_id, default=None,
                    help=ENV_HELP + " (None: the env the policy was trained on)")
-    _add_out_file(e, "write the summary to this JSON file")
+    arg.add_out_file(e, "write the summary to this JSON file")
     e.add_argument("--seed-set", choices=sorted(SEED_SETS), default="dev",
                    help="evaluation seeds: dev (tuning, default) or test (reported numbers)")
-    e.add_argument("--eval-workers", type=_workers, default=2, metavar="N",
+    e.add_argument("--eval-workers", type=arg.workers, default=2, metavar="N",
                    help="evaluation processes, 1-64 (1: in this process)")
-    e.add_argument("--clearance", type=_clearance_mm, default=None, metavar="MM",
+    e.add_argument("--clearance", type=arg.clearance_mm, default=None, metavar="MM",
                    help="rebuild the opening with this clearance per side, 0.5-20 mm (None: "
                         "the env's 2 mm); a tolerance-sensitivity check, not a table entry")
     e.set_defaults(func=cmd_eval)
     lb = sub.add_parser("leaderboard", help="regenerate the leaderboard from raw run files")
     lb.add_argument("--add", nargs="+", metavar="RUN_DIR", help="first copy these finished "
                                                                 "runs' raw files in")
-    lb.add_argument("--root", type=_dir_path, default="leaderboard/runs",
+    lb.add_argument("--root", type=arg.dir_path, default="leaderboard/runs",
                     help="leaderboard runs root")
-    lb.add_argument("--readme", type=_out_file, default=None,
+    lb.add_argument("--readme", type=arg.out_file, default=None,
                     help="also write the leaderboard page to this file (the table is always "
                          "printed)")
-    lb.add_argument("--snippet", type=_out_file, default=None,
+    lb.add_argument("--snippet", type=arg.out_file, default=None,
                     help="also write the table alone to this file, for the docs")
     lb.add_argument("--force", action="store_true",
                     help="overwrite --readme and --snippet, and runs already in --root; "
@@ -657,9 +563,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw = sub.add_parser("sweep", help="run a grid of cells (experiments/*.toml) on Ray; "
                                       "finished cells are skipped, partial ones resumed")
     sw.add_argument("grid", help="a grid file, e.g. experiments/table2.toml")
-    sw.add_argument("--out", type=_dir_path, default="runs/grid",
+    sw.add_argument("--out", type=arg.dir_path, default="runs/grid",
                     help="runs root: one directory per cell; nothing is written outside it")
-    sw.add_argument("--workers", type=_positive, default=None,
+    sw.add_argument("--workers", type=arg.positive, default=None,
                     help="cells at a time (None: one per CPU of the Ray cluster)")
     sw.add_argument("--address", default=None,
                     help="join an existing Ray cluster (e.g. 127.0.0.1:6379 after "
@@ -677,9 +583,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.set_defaults(func=cmd_sweep)
     tb = sub.add_parser("tables", help="regenerate the paper's Tables 2-7 and Figs. 10/11 "
                                        "from raw run files")
-    tb.add_argument("--runs", type=_dir_path, default="leaderboard/runs",
+    tb.add_argument("--runs", type=arg.dir_path, default="leaderboard/runs",
                     help="runs root to read")
-    tb.add_argument("--out", type=_out_dir, required=True,
+    tb.add_argument("--out", type=arg.out_dir, required=True,
                     help="directory for the pages and figures (the committed ones: "
                          "docs/results)")
     tb.add_argument("--no-figures", action="store_true", help="tables only")
@@ -698,16 +604,16 @@ def build_parser() -> argparse.ArgumentParser:
     vd.add_argument("--policy", default="installer",
                     help="a reference controller (" + ", ".join(sorted(CONTROLLERS)) + ") or a "
                          "policies/step_*.safetensors file of a run")
-    vd.add_argument("--env", type=_env_id, default="WindowInstall-A-v0", help=ENV_HELP)
-    vd.add_argument("--seed", type=_seed, default=0, help="first episode seed")
-    vd.add_argument("--episodes", type=_positive, default=1, help="episodes, one file each")
-    vd.add_argument("--out", type=_out_dir, default="runs/videos", help="directory for the MP4s "
+    vd.add_argument("--env", type=arg.env_id, default="WindowInstall-A-v0", help=ENV_HELP)
+    vd.add_argument("--seed", type=arg.seed, default=0, help="first episode seed")
+    vd.add_argument("--episodes", type=arg.positive, default=1, help="episodes, one file each")
+    vd.add_argument("--out", type=arg.out_dir, default="runs/videos", help="directory for the MP4s "
                     "and videos.json")
     vd.add_argument("--cameras", nargs="+", choices=list(CAMERAS), default=list(CAMERAS),
                     help="views, tiled left to right")
-    vd.add_argument("--size", type=_positive, default=240,
+    vd.add_argument("--size", type=arg.positive, default=240,
                     help=f"view height in px, {SIZE_RANGE[0]}-{SIZE_RANGE[1]}")
-    vd.add_argument("--fps", type=_positive, default=10,
+    vd.add_argument("--fps", type=arg.positive, default=10,
                     help=f"frames per second, {FPS_RANGE[0]}-{FPS_RANGE[1]} (10 = real time)")
     vd.add_argument("--force", action="store_true",
                     help="record into an --out that already holds videos.json or MP4s, "

@@ -1,7 +1,7 @@
 """The agent interface: everything the harness (:mod:`window_bench.harness.run`) asks of a learner.
 
 Every method of Table 1 runs one :class:`Agent` (QC-FQL, HIL-SERL/RLPD, ACT, SB3 SAC); the
-methods registry (:data:`window_bench.harness.methods.AGENTS`) maps an agent kind to its class,
+agents registry (:data:`window_bench.harness.methods.AGENTS`) maps an agent kind to its class,
 and the harness never asks which kind it holds. An agent
 
 * is built by :meth:`Agent.create` from an :class:`AgentSpec` (sizes, seed, profile, the
@@ -16,15 +16,20 @@ and the harness never asks which kind it holds. An agent
   ``policies/``) hold nothing but tensors, numpy arrays and JSON values (:func:`check_plain`),
   so that they can be written without pickle;
 * declares its capabilities as data (class attributes below) instead of the harness
-  branching on its kind: where takeover steps go, whether it keeps its own replay buffer,
-  whether it fits its own normaliser on the demos, its own Stage I step count.
+  branching on its kind: where takeover steps go (:func:`takeover_segments`), whether it keeps
+  its own replay buffer, whether it fits its own normaliser on the demos, its own Stage I step
+  count, the observation track it reads, and the code its Stage I depends on.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
+import json
+import math
 import numbers
+import types
+import typing
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -32,8 +37,14 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from window_bench.data.steplog import ACTION_DIM, EpisodeLog
+from window_bench.harness.methods import agent_class
+from window_bench.harness.tracks import DEFAULT_TRACK
+
 #: The JSON scalars a plain state may hold besides tensors and arrays.
 _JSON_SCALARS = (str, bool, int, float, type(None))
+MAX_OVERRIDE_INT = 1_000_000   # --agent-config counts and sizes (the paper's Stage I: 1e6)
+MAX_OVERRIDE_WIDTH = 8192      # --agent-config layer widths (the paper's MLPs: 512)
 
 
 @dataclass(frozen=True)
@@ -56,7 +67,8 @@ class Agent(ABC):
 
     #: Actions per :meth:`act` call (the chunk horizon).
     h: int = 1
-    #: Takeover transitions also go to D_demo (HIL-SERL), not only to D_online.
+    #: Takeover transitions also go to D_demo (HIL-SERL), not only to D_online: the harness
+    #: adds each finished episode's :func:`takeover_segments` there.
     takeovers_to_demo: bool = False
     #: The agent keeps its own replay buffer (SB3 SAC): the harness hands it every finished
     #: training episode through :meth:`add_episode` instead of filling its chunk replays.
@@ -68,6 +80,17 @@ class Agent(ABC):
     #: The agent acts in chunks of the method's ``h`` (``AgentSpec.h``), so a run may set
     #: another one (QC-FQL, Tables 5/6); the others have a fixed horizon.
     follows_method_h: bool = False
+    #: The observation track the agent reads (window_bench.harness.tracks): its policy is
+    #: evaluated in that track's env.
+    track: str = DEFAULT_TRACK
+
+    @classmethod
+    def stage1_modules(cls) -> tuple[str, ...]:
+        """The modules whose source defines what the agent's Stage I computes: the Stage I
+        cache (harness/stage1.py) hashes them into its key, so a code change is a new entry.
+        This default is the module that defines the class; () for an agent without a Stage I
+        to cache."""
+        return (cls.__module__,)
 
     # ------------------------------------------------------------------ building
     @classmethod
@@ -146,6 +169,76 @@ class Agent(ABC):
         """The agent's configuration for ``results.json`` (plain values)."""
         cfg = getattr(self, "config", None)
         return plain(dataclasses.asdict(cfg)) if dataclasses.is_dataclass(cfg) else {}
+
+
+# ---------------------------------------------------------------------------- building one
+def make_agent(method, profile, demos: list, seed: int, overrides: dict | None = None) -> Agent:
+    """A fresh learner for ``method`` (a :class:`~window_bench.harness.methods.Method`; its
+    class from the registry) with the ``profile``'s sizes; ``overrides`` replace fields of the
+    agent's config (``bench run --agent-config KEY=VALUE``)."""
+    cls = agent_class(method.agent)
+    obs = np.concatenate([ep.observations for ep in demos])
+    mean, std = (None, None) if cls.own_normalizer else obs_normalizer(obs)
+    return cls.create(AgentSpec(obs_dim=int(obs.shape[1]), action_dim=ACTION_DIM, h=method.h,
+                                seed=seed, profile=profile, demos=demos, obs_mean=mean,
+                                obs_std=std, overrides=dict(overrides or {})))
+
+
+def obs_normalizer(obs: np.ndarray, floor: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std of the demonstrations' observations, for the agents' fixed z-scoring.
+
+    A feature constant in the demonstrations (the vacuum flag in A, which never drops in a
+    good demonstration) keeps scale 1: it is only centred, because flooring its std would
+    blow a value seen only online (the flag at 0) up to ``1 / floor`` units. Other stds are
+    floored at ``floor``; the agents also clip normalised inputs (QC-FQL: +-10).
+    """
+    mean, std = obs.mean(0), obs.std(0)
+    std = np.where(std < 1e-6, 1.0, np.maximum(std, floor))
+    return mean.astype(np.float32), std.astype(np.float32)
+
+
+# ---------------------------------------------------------------------------- takeovers
+def takeover_segments(episode: EpisodeLog) -> list[EpisodeLog]:
+    """The maximal runs of ``"takeover"`` steps of ``episode``, each as its own step log.
+
+    With ``h = 1`` every transition ``(s_t, a_t, r_t, s_t+1)`` stands alone, so a run
+    ``[t0, t1)`` becomes a log with observations ``s_t0 .. s_t1`` that ends ``terminated`` if
+    the episode terminated on its last step and ``truncated`` otherwise (its last
+    transition then bootstraps from ``s_t1``, as in the full episode). These are what the
+    harness adds to D_demo for an agent with ``takeovers_to_demo`` (HIL-SERL stores
+    intervened transitions as demonstrations too). Per-step fields are sliced generically
+    (rows ``T`` or ``T + 1``), so fields added to :class:`EpisodeLog` later travel along;
+    the chunk grid is reset to ``h = 1``.
+    """
+    episode.validate()
+    T = episode.T
+    takeover = np.asarray(episode.provenance) == "takeover"
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], takeover.astype(np.int8), [0]])))
+    segments = []
+    for t0, t1 in zip(edges[0::2], edges[1::2]):
+        kwargs = {}
+        for f in dataclasses.fields(episode):
+            value = getattr(episode, f.name)
+            if isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == T + 1:
+                value = value[t0:t1 + 1].copy()
+            elif isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == T:
+                value = value[t0:t1].copy()
+            elif isinstance(value, (dict, list)):
+                value = copy.deepcopy(value)
+            kwargs[f.name] = value
+        ends_episode = t1 == T
+        terminated = np.zeros(t1 - t0, bool)
+        truncated = np.zeros(t1 - t0, bool)
+        if ends_episode and bool(episode.terminated[-1]):
+            terminated[-1] = True
+        else:
+            truncated[-1] = True
+        kwargs.update(terminated=terminated, truncated=truncated, chunk_horizon=1,
+                      chunk_index=None, policy_chunk_start=None)
+        segment = type(episode)(**kwargs)
+        segment.validate()
+        segments.append(segment)
+    return segments
 
 
 # ---------------------------------------------------------------------------- plain data
@@ -254,3 +347,89 @@ def check_int(name: str, value, minimum: int) -> int:
         raise ValueError(f"{name} = {value!r} is not allowed: it must be an integer "
                          f">= {minimum}")
     return int(value)
+
+
+# ---------------------------------------------------------------------------- --agent-config
+def parse_overrides(items: list[str] | None) -> dict:
+    """``["alpha=100", "act_noise_scale=0"]`` -> ``{"alpha": 100, "act_noise_scale": 0}``
+    (values parsed as JSON where possible: numbers, booleans, lists)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"--agent-config {item!r}: expected KEY=VALUE")
+        key, value = item.split("=", 1)
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+        if isinstance(out[key], list):
+            out[key] = tuple(out[key])
+    return out
+
+
+def _fits(value, tp) -> bool:
+    """``value`` (parsed from JSON, lists as tuples) has the annotated type ``tp``."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(value, a) for a in args)
+    if origin is tuple:
+        if not isinstance(value, tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_fits(v, args[0]) for v in value)
+        return len(value) == len(args) and all(_fits(v, a) for v, a in zip(value, args))
+    if tp is type(None):
+        return value is None
+    if tp is bool:
+        return isinstance(value, bool)
+    if tp is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if tp is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if tp is str:
+        return isinstance(value, str)
+    return True   # a type the configs do not use: their own checks decide
+
+
+def _type_name(tp) -> str:
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in args)
+    if origin is tuple:
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"a list of {_type_name(args[0]).removeprefix('an ').removeprefix('a ')}s"
+        return f"a list [{', '.join(_type_name(a) for a in args)}]"
+    return {type(None): "null", bool: "true or false", int: "an integer", float: "a number",
+            str: "a string"}.get(tp, getattr(tp, "__name__", str(tp)))
+
+
+def check_agent_config(agent_cls: type, h: int, profile, overrides: dict):
+    """The agent's config with ``--agent-config`` applied, or a one-line ``ValueError``: each
+    value must have its field's declared type (read from the config dataclass) and be finite;
+    the config's own checks then hold the ranges (positive sizes, rates in [0, 1] ...)."""
+    try:   # the config's own checks first: their messages name the allowed range
+        config, error = agent_cls.make_config(h, profile, overrides), None
+    except TypeError as e:   # a value of a type its checks did not expect
+        config, error = None, e
+    default = agent_cls.make_config(h, profile, {})
+    if dataclasses.is_dataclass(default):
+        name, hints = type(default).__name__, typing.get_type_hints(type(default))
+        for key, value in overrides.items():
+            if key in hints and not _fits(value, hints[key]):
+                raise ValueError(f"{name}.{key} = {value!r} is not allowed: it must be "
+                                 f"{_type_name(hints[key])}")
+    if error is not None:   # still one line, naming the values
+        raise ValueError(f"--agent-config {overrides}: {str(error).splitlines()[0]}")
+    for key, value in overrides.items():
+        # sizes the configs bound only from below: a width or a count that exhausts memory
+        # would stop the run after its directory was made
+        most = MAX_OVERRIDE_WIDTH if isinstance(value, tuple) else MAX_OVERRIDE_INT
+        for v in value if isinstance(value, tuple) else (value,):
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"{type(config).__name__}.{key} = {value!r} is not allowed: "
+                                 f"it must be finite")
+            if isinstance(v, int) and not isinstance(v, bool) and v > most:
+                raise ValueError(f"{type(config).__name__}.{key} = {value!r} is not allowed: "
+                                 f"{'each entry' if isinstance(value, tuple) else 'it'} must "
+                                 f"be at most {most}")
+    return config

@@ -1,15 +1,24 @@
-"""Rolling out a controller, the statistics we report, and the run files they go into.
+"""Rolling out a controller or a frozen policy, the statistics we report, and their files.
+
+* Reference controllers (``bench install`` / ``bench calibrate``): :func:`evaluate` runs
+  seeded episodes; per-episode rows are appended to a JSONL file as they finish, so a
+  calibration killed at any moment resumes where it stopped; :func:`summarize`.
+* Frozen policies (a training run's checkpoints, ``bench eval``): :class:`Evaluator` rolls
+  the policy out deterministically, interventions off, on seeds of a seed set, in spawned
+  worker processes, in the env of the policy's observation track; :func:`summarize_eval`
+  gives success with its Wilson interval, cycle time, the stage-wise rates and the failure
+  modes; :func:`evaluate_policy_file` checks a policy file before anything runs.
 
 Every results file carries the provenance the project promises: env id, controller, seeds,
-versions of window-bench / mujoco / numpy / gymnasium and the git commit. Per-episode rows
-are appended to a JSONL file as they finish, so a calibration killed at any moment resumes
-where it stopped; summaries are written to a temporary file and renamed into place.
+versions of window-bench / mujoco / numpy / gymnasium and the git commit; summaries are
+written to a temporary file and renamed into place.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import multiprocessing as mp
 import os
 import platform
 import secrets
@@ -22,9 +31,15 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from window_bench.installer.scripted import CONTROLLERS
+from window_bench.data.steplog import STEP_DT
 from window_bench.envs.scene import TORQUE_LIMITS
 from window_bench.envs.task import FAILURE_MODE_NAMES, FAILURE_MODES
+from window_bench.harness.methods import agent_class
+from window_bench.harness.seeds import eval_seeds
+from window_bench.harness.tracks import DEFAULT_TRACK, get_track
+from window_bench.installer.scripted import CONTROLLERS
+
+TIME_TO_95_J = 3
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -130,17 +145,29 @@ ROW_KEYS = frozenset({"seed", "success", "cycle_time_s", "failure_mode", "t_suct
                       "t_insertion_entered"})
 
 
+def _successes(rows: list[dict]) -> dict:
+    """Episodes, successes, success rate and its 95 % Wilson interval of episode rows."""
+    n = len(rows)
+    k = sum(r["success"] for r in rows)
+    return {"episodes": n, "successes": k, "success_rate": k / n,
+            "wilson95": list(wilson_interval(k, n))}
+
+
+def _failure_modes(rows: list[dict]) -> dict[str, int]:
+    """How many failed episodes ended in each failure mode (the ones that occur)."""
+    modes = Counter(r["failure_mode"] for r in rows if not r["success"])
+    return {m: modes[m] for m in FAILURE_MODES if modes.get(m)}
+
+
 def summarize(rows: list[dict]) -> dict:
     n = len(rows)
     k = sum(r["success"] for r in rows)
-    lo, hi = wilson_interval(k, n)
     cycle = [r["cycle_time_s"] for r in rows if r["success"]]
-    modes = Counter(r["failure_mode"] for r in rows if not r["success"])
     return {
-        "episodes": n, "successes": k, "success_rate": k / n, "wilson95": [lo, hi],
+        **_successes(rows),
         "cycle_time_s_mean": float(np.mean(cycle)) if cycle else None,
         "cycle_time_s_median": float(np.median(cycle)) if cycle else None,
-        "failure_modes": {m: modes.get(m, 0) for m in FAILURE_MODES if modes.get(m, 0)},
+        "failure_modes": _failure_modes(rows),
         "seeds": [min(r["seed"] for r in rows), max(r["seed"] for r in rows)],
         "holding_torque_frac_max": np.max([r["holding_torque_frac"] for r in rows], axis=0).round(3).tolist()
         if all("holding_torque_frac" in r for r in rows) else None,
@@ -222,3 +249,217 @@ def evaluate(env_id: str, controller: str, episodes: int, seed: int = 0,
             bar.close()
         env.close()
     return sorted(rows, key=lambda r: r["seed"])
+
+
+# ---------------------------------------------------------------------------- frozen policies
+class AgentPolicy:
+    """Adapts an agent (``act(obs, deterministic)`` -> (h, 7)) to the rollout's policy API."""
+
+    def __init__(self, agent, deterministic: bool):
+        self.agent, self.deterministic = agent, deterministic
+        self.h = int(agent.h)
+
+    def reset(self, seed=None):
+        self.agent.reset()   # e.g. ACT's temporal-ensembling history
+
+    def act(self, obs):
+        return self.agent.act(obs, deterministic=self.deterministic)
+
+
+def _eval_rollout(agent_cls: type, policy_state: dict, env_id: str, max_steps: int,
+                  env_kwargs: dict | None = None):
+    """A deterministic rollout of the policy in the env of its observation track, observed
+    on the policy's chunk grid (``env_kwargs``: constructor arguments of the env, e.g.
+    ``{"clearance": 0.005}``)."""
+    from window_bench.installer.rollout import Rollout
+
+    agent = agent_cls.from_policy_state_dict(policy_state)
+    track = get_track(getattr(agent_cls, "track", DEFAULT_TRACK))
+    env = track.eval_env(env_id, policy_state, observe_every=int(agent.h),
+                         max_episode_steps=max_steps, **(env_kwargs or {}))
+    return Rollout(env, AgentPolicy(agent, deterministic=True), env_id=env_id), env
+
+
+def _eval_episode(rollout, seed: int) -> dict:
+    """One evaluation episode of a :class:`~window_bench.installer.rollout.Rollout` from the
+    reset seed ``seed``; its row."""
+    log = rollout.run(seed=seed, episode_id=seed)
+    info = rollout.info
+    return {"seed": int(seed), "success": bool(log.terminated[-1]),
+            "cycle_time_s": round(log.T * STEP_DT, 1),
+            "suction_acquired": bool(info["suction_acquired"]),
+            "insertion_entered": bool(info["insertion_entered"]),
+            "failure_mode": "" if log.terminated[-1]
+            else (FAILURE_MODE_NAMES[info["failure_code"]] or "timeout"),
+            # suction lost by a vacuum-off command vs grips broken at the holding limit
+            "commanded_releases": int(info["suction_releases"]),
+            "grip_breaks": int(info["suction_failures"]),
+            # the acceptance test's centring error on the last step (accepted: < 2 mm)
+            "final_position_error_mm": round(1000.0 * float(info["position_error"]), 2)}
+
+
+#: A pool worker's rollout for the evaluation in progress: (token, rollout, env).
+_WORKER_ROLLOUT: list = []
+
+
+def _eval_worker(task) -> dict:
+    """One episode in a pool worker. The worker builds the agent and env once per
+    evaluation (``token``) and keeps them for that evaluation's next episodes."""
+    token, agent_cls, policy_state, env_id, seed, max_steps, env_kwargs = task
+    if not _WORKER_ROLLOUT or _WORKER_ROLLOUT[0] != token:
+        import torch
+
+        torch.set_num_threads(1)
+        if _WORKER_ROLLOUT:
+            _WORKER_ROLLOUT[2].close()
+        _WORKER_ROLLOUT[:] = [token, *_eval_rollout(agent_cls, policy_state, env_id, max_steps,
+                                                    env_kwargs)]
+    return _eval_episode(_WORKER_ROLLOUT[1], seed)
+
+
+def summarize_eval(rows: list[dict]) -> dict:
+    """Checkpoint metrics from evaluation rows: success, Wilson, cycle time, stage-wise."""
+    n = len(rows)
+    s = sum(r["suction_acquired"] for r in rows)
+    i = sum(r["insertion_entered"] and r["suction_acquired"] for r in rows)
+    t = sum(r["success"] and r["insertion_entered"] for r in rows)
+    cycles = [r["cycle_time_s"] for r in rows if r["success"]]
+    ratio = lambda a, b: (a / b) if b else None  # noqa: E731
+    # Rows written before the env reported the cause of a suction loss count as neither.
+    broke = [r.get("grip_breaks", 0) > 0 for r in rows]
+    released = [r.get("commanded_releases", 0) > 0 for r in rows]
+    lost = [r["failure_mode"] == "suction_lost" and not r["success"] for r in rows]
+    return {**_successes(rows),
+            "cycle_time_s": float(np.mean(cycles)) if cycles else None,
+            "pr_S": ratio(s, n), "pr_I_given_S": ratio(i, s), "pr_T_given_I": ratio(t, i),
+            "failure_modes": _failure_modes(rows),
+            "episodes_with_commanded_release": sum(released),
+            "episodes_with_grip_break": sum(broke),
+            # suction_lost failures by cause: any grip break, else commanded releases only
+            "suction_lost_by": {"grip_break": sum(x and b for x, b in zip(lost, broke)),
+                                "commanded": sum(x and c and not b
+                                                 for x, c, b in zip(lost, released, broke))}}
+
+
+#: What a results file's ``final_eval`` keeps of :func:`summarize_eval` (besides seeds, policy
+#: and its hash): success, stage-wise rates, failure modes and why suction was lost.
+FINAL_EVAL_KEYS = ("episodes", "successes", "success_rate", "wilson95", "cycle_time_s", "pr_S",
+                   "pr_I_given_S", "pr_T_given_I", "failure_modes",
+                   "episodes_with_commanded_release", "episodes_with_grip_break",
+                   "suction_lost_by")
+
+
+def time_to_threshold(rates: list[float], steps: list[int], threshold: float = 0.95,
+                      J: int = TIME_TO_95_J) -> int | None:
+    """First checkpoint step from which raw success >= threshold for J consecutive
+    checkpoints; None if never."""
+    if J < 1:
+        raise ValueError(f"J = {J} must be >= 1")
+    run = 0
+    for idx, r in enumerate(rates):
+        run = run + 1 if r >= threshold else 0
+        if run >= J:
+            return steps[idx - J + 1]
+    return None
+
+
+class Evaluator:
+    """Frozen-policy evaluation, in spawned worker processes when ``workers`` > 1, with a
+    progress bar over the episodes (rate and ETA) when ``progress``. Each episode depends
+    only on its seed, so the rows do not depend on the number of workers or on which worker
+    ran which episode."""
+
+    def __init__(self, env_id: str, episodes: int, workers: int, max_steps: int,
+                 seed_set: str = "dev", progress: bool = False, env_kwargs: dict | None = None):
+        self.env_id, self.episodes, self.max_steps = env_id, episodes, max_steps
+        self.env_kwargs = dict(env_kwargs or {})
+        self.seed_set, self.progress = seed_set, progress
+        self.seeds = eval_seeds(seed_set, episodes)
+        self.workers = max(1, min(workers, episodes))
+        self.pool = None
+
+    def __call__(self, agent_cls: type, policy_state: dict) -> list[dict]:
+        """Rows of the M evaluation rollouts of ``agent_cls.from_policy_state_dict(policy_state)``."""
+        from tqdm import tqdm
+
+        rows = []
+        with tqdm(total=len(self.seeds), desc=f"evaluate ({self.seed_set} seeds)", unit="ep",
+                  disable=not self.progress, leave=False) as bar:
+            if self.workers == 1:
+                rollout, env = _eval_rollout(agent_cls, policy_state, self.env_id,
+                                             self.max_steps, self.env_kwargs)
+                try:
+                    for seed in self.seeds:
+                        rows.append(_eval_episode(rollout, seed))
+                        bar.update(1)
+                finally:
+                    env.close()
+            else:
+                if self.pool is None:
+                    self.pool = mp.get_context("spawn").Pool(self.workers)
+                token = os.urandom(8).hex()
+                tasks = [(token, agent_cls, policy_state, self.env_id, seed, self.max_steps,
+                          self.env_kwargs) for seed in self.seeds]
+                for row in self.pool.imap_unordered(_eval_worker, tasks):
+                    rows.append(row)
+                    bar.update(1)
+        return sorted(rows, key=lambda r: r["seed"])
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.close()
+            self.pool.join()
+            self.pool = None
+
+
+def load_policy_file(path: str | os.PathLike) -> tuple[type, dict, dict]:
+    """``(agent class, policy state, metadata)`` of a frozen policy file, checked before
+    anything runs: against its run's ``manifest.json`` when it lies in a run directory,
+    against its own sha256 always, and rebuilt once (its agent kind looked up in the agents
+    registry); :class:`~window_bench.harness.files.RunFileError` otherwise."""
+    import window_bench
+    from window_bench.harness.files import RunFileError, find_run_dir, load_state, verify_files
+
+    path = Path(path)
+    run_dir = find_run_dir(path)
+    if run_dir is not None:
+        verify_files(run_dir, [path.resolve().relative_to(run_dir).as_posix()])
+    policy, meta = load_state(path, "policy")
+    try:
+        agent_cls = agent_class(meta["agent_kind"])
+        if meta["env_id"] not in window_bench.ENV_IDS:
+            raise ValueError(f"env {meta['env_id']!r} is not registered")
+        agent_cls.from_policy_state_dict(policy)   # here, not in a worker's traceback
+    except (KeyError, ValueError, TypeError, RuntimeError) as e:
+        raise RunFileError(f"{path}: does not hold a policy this window-bench can run "
+                           f"({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+                           ) from None
+    return agent_cls, policy, meta
+
+
+def evaluate_policy_file(path: str | os.PathLike, episodes: int, workers: int = 2,
+                         env_id: str | None = None, seed_set: str = "dev",
+                         max_steps: int = 600, progress: bool = False,
+                         clearance: float | None = None) -> dict:
+    """``bench eval``: evaluate a frozen policy file from ``policies/`` (interventions off),
+    after :func:`load_policy_file` checked it. ``clearance`` (m per side, the scene's range
+    [0.0005, 0.02]; None: the env id's own, 0.002) rebuilds the opening with another
+    clearance: a tolerance-sensitivity check, not a registered task, so its rows are not
+    comparable with the tables and the summary records it in ``env_kwargs``."""
+    from window_bench.envs.scene import SceneConfig
+
+    env_kwargs = {}
+    if clearance is not None:
+        SceneConfig(clearance=float(clearance))      # the scene's range check, before any work
+        env_kwargs["clearance"] = float(clearance)
+    agent_cls, policy, meta = load_policy_file(path)
+    env_id = env_id or meta["env_id"]
+    ev = Evaluator(env_id, episodes, workers, max_steps, seed_set, progress, env_kwargs)
+    try:
+        rows = ev(agent_cls, policy)
+    finally:
+        ev.close()
+    return {"policy": str(path), "method": meta["method"], "env_id": env_id,
+            "trained_env_steps": meta["env_steps"], **summarize_eval(rows),
+            "seed_set": seed_set, "eval_seeds": [ev.seeds[0], ev.seeds[-1]],
+            "env_kwargs": env_kwargs, "rows": rows, "provenance": provenance()}

@@ -455,5 +455,23 @@ class RunDir:
         verify_files(self.path, [name], self.manifest)
         return load_state(self.path / name, kind)
 
+    def write_run_state(self, name: str, tree, kind: str) -> Path:
+        """A state file of this run, saved with the run's identity."""
+        return self.write_state(name, tree, kind, self.identity)
+
+    def read_run_state(self, name: str, kind: str):
+        """The tree of a state file :meth:`write_run_state` wrote, once the manifest matched
+        the command (``RunDir``) and the run that saved the state matches the manifest (a
+        manifest edited to another seed would relabel the run)."""
+        tree, saved = self.read_state(name, kind)
+        run, saved = self.manifest["run"], saved if isinstance(saved, dict) else {}
+        for key in sorted(set(saved) | set(run)):
+            if saved.get(key) != run.get(key):
+                raise RunFileError(f"{self.path / MANIFEST}: records {key} = {run.get(key)!r}, "
+                                   f"the run's {name} was saved with {saved.get(key)!r} "
+                                   f"(edited, or another run's manifest); restore it from a "
+                                   f"copy or start a new run")
+        return tree
+
     def has(self, name: str) -> bool:
         return name in self.manifest["files"]

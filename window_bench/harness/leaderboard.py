@@ -29,6 +29,7 @@ from pathlib import Path
 from window_bench.harness.evaluation import atomic_write_text
 from window_bench.harness.files import MANIFEST, read_manifest
 from window_bench.harness.methods import METHODS
+from window_bench.harness.tracks import DEFAULT_TRACK
 from window_bench.harness.schemas import RUN_FILES, SAFE_NAME, check_results, md_text, \
     results_schema  # noqa: F401  (results_schema: the leaderboard's schema, documented here)
 
@@ -45,7 +46,7 @@ def run_dest(results: dict, root: str | os.PathLike) -> Path:
     """``root/<env>/<method><overrides>[-pixels]-<profile>-s<seed>``, checked to stay inside
     ``root``: a pixel-track run never lands on the state-track run of the same method and seed."""
     tag = override_tag((results.get("agent_config_overrides") or {}).items())
-    if _track(results) != "state":
+    if _track(results) != DEFAULT_TRACK:
         tag += f"-{_track(results)}"
     name = f"{results['method']['name']}{tag}-{results['profile']['name']}-s{results['seed']}"
     dest = Path(root) / results["env_id"] / name
@@ -75,7 +76,7 @@ def add_run(run_dir: str | os.PathLike, root: str | os.PathLike = "leaderboard/r
 
 def _track(results: dict) -> str:
     """The run's observation track; results files from before the setting are ``state``."""
-    return results.get("track", "state")
+    return results.get("track", DEFAULT_TRACK)
 
 
 def _pct(x) -> str:
@@ -90,7 +91,8 @@ def table(results: list[dict]) -> str:
     from window_bench.harness.seeds import seed_set_of
 
     order = {name: i for i, name in enumerate(METHODS)}
-    rows = sorted(results, key=lambda r: (_track(r) != "state", r["env_id"], r["profile"]["name"],
+    rows = sorted(results, key=lambda r: (_track(r) != DEFAULT_TRACK, r["env_id"],
+                                         r["profile"]["name"],
                                          order.get(r["method"]["name"], 99), r["seed"]))
     lines = ["| track ³ | env | method | profile | seed | final success (%) [95 % Wilson] | "
              "M, seeds ² | time-to-95 (sim. h) | cycle time (s) | takeover (min) |",

@@ -2,19 +2,22 @@
 component flags, and the run profiles (``paper``, ``cpu``, ``smoke``).
 
 ``bench methods`` prints Table 1 from :data:`METHODS`. A method names the agent that learns
-(``qcfql``; the external baselines come with their own agents) and which protocol
+(``qcfql``; HIL-SERL, ACT and SAC come with their own agents) and which protocol
 components are on: demonstrations, offline pretraining (Stage I), the non-updating warm
 start (Stage II), online RL updates (Stage III), installer takeovers, and the chunk
 horizon ``h``. :data:`AGENTS` maps each agent kind to the class that implements
-:class:`window_bench.harness.agent.Agent`; a new method is a new row here (and, for a new
-learner, a new entry in :data:`AGENTS`), never a change to the harness.
+:class:`window_bench.harness.agent.Agent`, and :data:`PRESETS` names published agent configs
+(``--agent-config`` overrides); both are filled from above the harness
+(:mod:`window_bench.catalog`). A new method is a new row here (and, for a new learner, a
+:func:`register_agent` call), never a change to the harness.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from importlib import import_module
+
+from window_bench.harness.registry import Registry
 
 
 @dataclass(frozen=True)
@@ -60,31 +63,31 @@ METHODS: dict[str, Method] = {m.name: m for m in (   # in the order of Table 1
 )}
 
 
-#: Agent kind -> the class implementing ``window_bench.harness.agent.Agent``, as
-#: ``"module:Class"`` (imported on first use, so ``bench methods`` loads no learner) or the
-#: class itself (a learner registered at run time, e.g. in a test).
-AGENTS: dict[str, str | type] = {
-    "qcfql": "baselines.qcfql:QCFQLAgent",
-    "hilserl": "baselines.hilserl:HILSERLAgent",
-    "act": "baselines.act:ACTAgent",
-    "sac": "baselines.sac:SACAgent",
-    "qcfql-pixels": "window_bench.pixels.agent:PixelQCFQL",   # bench run --track pixels
-    "hilserl-pixels": "window_bench.pixels.agent:PixelHILSERL",
-    "sac-pixels": "window_bench.pixels.sac:PixelSACAgent",
-    "act-pixels": "window_bench.pixels.agent:PixelACT",
-}
+#: Agent kind -> the class implementing ``window_bench.harness.agent.Agent``.
+AGENTS = Registry("agent kind")
+#: Published agent configs: name -> ``--agent-config`` overrides (e.g. the paper's QC-FQL).
+PRESETS = Registry("agent preset")
+
+
+def register_agent(kind: str, cls: type | None = None, *, load=None) -> None:
+    """Register the agent class of ``kind``, or ``load``, a function that imports and
+    returns it on first use (so that ``bench methods`` loads no learner)."""
+    AGENTS.register(kind, cls, load=load)
 
 
 def agent_class(kind: str) -> type:
     """The agent class registered for ``kind``."""
-    try:
-        entry = AGENTS[kind]
-    except KeyError:
-        raise ValueError(f"unknown agent kind {kind!r}; registered: {', '.join(AGENTS)}") from None
-    if isinstance(entry, str):
-        module, name = entry.split(":")
-        entry = getattr(import_module(module), name)
-    return entry
+    return AGENTS.lookup(kind)
+
+
+def register_preset(name: str, overrides: dict | None = None, *, load=None) -> None:
+    """Register a named agent config (its ``--agent-config`` overrides), or ``load``."""
+    PRESETS.register(name, overrides, load=load)
+
+
+def get_preset(name: str) -> dict:
+    """The ``--agent-config`` overrides of the preset ``name``."""
+    return PRESETS.lookup(name)
 
 
 def get_method(name: str) -> Method:

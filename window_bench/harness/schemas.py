@@ -23,7 +23,7 @@ import re
 from pathlib import Path
 
 from window_bench.harness.files import MANIFEST, read_manifest, verify_files
-from window_bench.harness.run import RESULTS_SCHEMA
+from window_bench.harness.results import RESULTS_SCHEMA
 from window_bench.harness.seeds import MAX_EPISODES, SEED_SETS, seed_set_of
 
 #: Real results files are tens of kB and a ``bench eval`` summary with every row of M = 10,000
@@ -122,7 +122,7 @@ def results_schema() -> dict:
     read."""
     import window_bench
     from window_bench.harness.methods import METHODS, PROFILES
-    from window_bench.pixels.track import TRACKS
+    from window_bench.harness.tracks import TRACKS
 
     commit = {"type": "object", "required": ["git_commit"], "properties": {
         "git_commit": {"type": "string", "pattern": r"^([0-9a-f]{7,40}(-dirty)?|unknown)$"}}}

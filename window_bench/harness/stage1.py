@@ -9,8 +9,8 @@ cells load it. What Stage I produces is fully determined by
 * the profile's Stage I budget (gradient steps, batch size),
 * the demonstrations (a sha256 over their observations and actions, so hand-recorded demos
   count as different demos), and the run seed,
-* the code that computes it (sha256 of the agent's and the replay's source files) and the torch
-  version,
+* the code that computes it (sha256 of the source files the agent's track names for its Stage I,
+  and of the replay's) and the torch version,
 
 and the cache key is the sha256 of exactly that (:func:`stage1_key`). An entry holds the
 pretrained agent, the demo buffer's sampler state, torch's global RNG state, the Stage I
@@ -29,11 +29,14 @@ import fcntl
 import hashlib
 import json
 import os
+import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from window_bench.harness.evaluation import atomic_write, atomic_write_text
+from window_bench.harness.tracks import get_track
 
 KIND = "stage1"
 
@@ -47,26 +50,6 @@ def _source_sha256(*modules: str) -> str:
     return h.hexdigest()
 
 
-_AGENT_MODULES = {"qcfql": "baselines.qcfql", "hilserl": "baselines.hilserl", "act": "baselines.act"}
-#: What a pixel-track agent adds to its state-track agent's code (window_bench/pixels/track.py
-#: PIXEL_KINDS): the front end (aggregation, fusion) and the encoder it trains through.
-_PIXEL_MODULES = ("window_bench.pixels.agent", "window_bench.pixels.encoder")
-
-
-def agent_modules(agent_kind: str) -> tuple[str, ...]:
-    """The modules whose source a Stage I result of ``agent_kind`` depends on (beside the
-    replay); a state kind hashes exactly its own module, so its keys are as they always were."""
-    from window_bench.pixels.track import PIXEL_KINDS
-
-    if agent_kind in _AGENT_MODULES:
-        return (_AGENT_MODULES[agent_kind],)
-    state_kind = {v: k for k, v in PIXEL_KINDS.items()}.get(agent_kind)
-    if state_kind in _AGENT_MODULES:
-        return (_AGENT_MODULES[state_kind], *_PIXEL_MODULES)
-    raise ValueError(f"agent kind {agent_kind!r} has no Stage I to cache; kinds with one: "
-                     f"{', '.join([*_AGENT_MODULES, *(PIXEL_KINDS[k] for k in _AGENT_MODULES)])}")
-
-
 def demos_sha256(demos) -> str:
     """sha256 over the demonstrations' observations and actions, in order."""
     h = hashlib.sha256()
@@ -78,14 +61,19 @@ def demos_sha256(demos) -> str:
     return h.hexdigest()
 
 
-def key_material(agent_kind: str, agent_config: dict, offline_steps: int, batch_size: int,
-                 demos_digest: str, seed: int) -> dict:
-    """Everything Stage I's result depends on (see the module docstring)."""
+def key_material(agent_kind: str, track: str, agent_config: dict, offline_steps: int,
+                 batch_size: int, demos_digest: str, seed: int) -> dict:
+    """Everything Stage I's result depends on (see the module docstring) for the agent kind
+    ``agent_kind`` of ``track``; the code is what the track says that agent's Stage I
+    depends on (:meth:`~window_bench.harness.tracks.Track.stage1_modules`)."""
     import torch
 
+    modules = get_track(track).stage1_modules(agent_kind)
+    if not modules:
+        raise ValueError(f"agent kind {agent_kind!r} has no Stage I to cache")
     return {"agent": agent_kind, "agent_config": agent_config, "offline_steps": int(offline_steps),
             "batch_size": int(batch_size), "demos_sha256": demos_digest, "seed": int(seed),
-            "code_sha256": _source_sha256(*agent_modules(agent_kind), "window_bench.data.replay"),
+            "code_sha256": _source_sha256(*modules, "window_bench.data.replay"),
             "torch": torch.__version__}
 
 
@@ -137,3 +125,46 @@ class Stage1Cache:
         if material is not None:
             atomic_write_text(self.root / f"{key}.json",
                               json.dumps({**meta, "material": material}, indent=1, sort_keys=True))
+
+    def compute_or_load(self, material: dict, compute: Callable[[], dict],
+                        restore: Callable[[dict], None]) -> dict:
+        """The entry of ``material``'s key: ``compute()`` makes it (stored) when the cache has
+        none, else ``restore(tree)`` loads it, both under the key's lock. Returns the record a
+        run keeps (``stage1`` in ``results.json``): the key, hit or miss, Stage I's wall
+        clock, the lock wait and the load time."""
+        key = stage1_key(material)
+        t0 = time.perf_counter()
+        with self.lock(key):
+            waited = time.perf_counter() - t0
+            entry = self.load(key)
+            if entry is None:
+                tree = compute()
+                wall = time.perf_counter() - t0 - waited
+                self.store(key, tree, material, wall)
+            else:
+                tree, meta = entry
+                restore(tree)
+                wall = meta["stage1_wall_clock_s"]
+        return {"key": key, "cache_hit": entry is not None,
+                "stage1_wall_clock_s": round(wall, 2), "lock_wait_s": round(waited, 2),
+                "load_s": round(time.perf_counter() - t0 - waited, 2)
+                if entry is not None else None}
+
+    def checkpoint0_evaluator(self, key: str, evaluator, what: dict):
+        """``(evaluator, hit)`` for checkpoint 0, which evaluates the Stage I result alone:
+        the rows kept in the entry when they were made for ``what`` (env, seeds, episode
+        cap; ``hit`` True), else ``evaluator`` keeping its rows there (``hit`` False);
+        ``evaluator`` itself and None without an entry."""
+        entry = self.load(key)
+        if entry is None:
+            return evaluator, None
+        tree, meta = entry
+        if tree.get("eval0", {}).get("what") == what:
+            return (lambda agent_cls, state: tree["eval0"]["rows"]), True
+
+        def evaluate_and_keep(agent_cls, state):
+            rows = evaluator(agent_cls, state)
+            self.store(key, {**tree, "eval0": {"what": what, "rows": rows}}, None,
+                       meta["stage1_wall_clock_s"])
+            return rows
+        return evaluate_and_keep, False

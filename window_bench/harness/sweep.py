@@ -65,9 +65,10 @@ from pathlib import Path
 
 from window_bench.harness.evaluation import atomic_write_text
 from window_bench.harness.leaderboard import override_tag
-from window_bench.harness.methods import get_method, get_profile
+from window_bench.harness.methods import agent_class, get_method, get_profile
 from window_bench.harness.schemas import FIELD_NAME, POLICY_FILE, SAFE_NAME, read_json
 from window_bench.harness.seeds import SEED_SETS
+from window_bench.harness.tracks import DEFAULT_TRACK, TRACKS, get_track
 
 GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "eval_workers",
              "track", "train", "evaluate"}
@@ -94,7 +95,7 @@ class Cell:
     h: int | None = None                       # None: the method's own h
     agent_config: tuple = ()                   # sorted (key, value) pairs
     on: str | None = None
-    track: str = "state"                       # observation track: state / pixels
+    track: str = DEFAULT_TRACK                 # observation track (harness/tracks.py)
 
     @property
     def train_cell(self) -> "Cell":
@@ -105,7 +106,7 @@ class Cell:
         """``<env>/<run>`` for a training cell, ``<evaluated env>/<run>`` for an evaluation."""
         tag = f"-h{self.h}" if self.h is not None else ""
         tag += override_tag(self.agent_config)
-        tag += "" if self.track == "state" else f"-{self.track}"   # as bench leaderboard names it
+        tag += "" if self.track == DEFAULT_TRACK else f"-{self.track}"   # as bench leaderboard does
         return f"{self.on or self.env_id}/{self.method}{tag}-{self.profile}-s{self.seed}"
 
     def path(self, out: Path) -> Path:
@@ -115,9 +116,11 @@ class Cell:
 
     @property
     def stage1_group(self) -> tuple | None:
-        """Cells with the same group compute the same Stage I (None: no Stage I to share)."""
-        m = get_method(self.method)
-        if self.on is not None or not m.offline_pretrain or m.agent != "qcfql":
+        """Cells with the same group compute the same Stage I (None: no Stage I to share): the
+        same agent of the same track, env, seed, profile, h and config."""
+        m, track = get_method(self.method), get_track(self.track)
+        if self.on is not None or not m.offline_pretrain or \
+                not track.stage1_modules(track.agent_kind(m.agent)):
             return None
         return (m.agent, self.env_id, self.seed, self.profile, self.h or m.h, self.agent_config,
                 self.track)
@@ -190,9 +193,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
     operator = doc.get("operator", "average")
     if operator not in OPERATORS:
         _fail(path, f"operator = {operator!r}; allowed: {', '.join(sorted(OPERATORS))}")
-    from window_bench.pixels.track import TRACKS
-
-    track = doc.get("track", "state")
+    track = doc.get("track", DEFAULT_TRACK)
     if track not in TRACKS:
         _fail(path, f"track = {track!r}; allowed: {', '.join(TRACKS)}")
     eval_workers = doc.get("eval_workers")
@@ -231,7 +232,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
                 _fail(path, f"{block}.h: {h!r}; allowed: integers in 1..100")
         _list(path, block, hs, "h", check)
         for m in methods:
-            if get_method(m).agent != "qcfql":
+            if not agent_class(get_method(m).agent).follows_method_h:
                 _fail(path, f"{block}.h: h is a run parameter of the QC-FQL methods only, "
                             f"not of {m!r}")
         return hs
@@ -263,13 +264,10 @@ def load_grid(path: str | os.PathLike) -> Grid:
                                 f"a list of numbers")
         pairs = tuple(sorted((k, tuple(v) if isinstance(v, list) else v)
                              for k, v in cfg.items()))
-        from window_bench.harness.methods import agent_class
-        from window_bench.pixels.track import track_agent_kind
-
         for m, h in itertools.product(methods, hs):
             method = get_method(m)
             try:
-                cls = agent_class(track_agent_kind(method.agent, track))
+                cls = agent_class(get_track(track).agent_kind(method.agent))
                 base = cls.make_config(h or method.h, get_profile(profile), {}) if pairs else None
                 for k, v in pairs:     # a list where the config holds a tuple, and only there
                     d = getattr(base, k, None)
@@ -538,7 +536,7 @@ def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool,
         argv += ["--stage1-cache", str(out / "stage1_cache")]
     if cell.h is not None:
         argv += ["--h", str(cell.h)]
-    if cell.track != "state":
+    if cell.track != DEFAULT_TRACK:
         argv += ["--track", cell.track]
     if cell.agent_config:
         argv += ["--agent-config", *(f"{k}={json.dumps(list(v) if isinstance(v, tuple) else v)}"

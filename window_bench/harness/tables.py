@@ -5,9 +5,10 @@ Inputs are only the raw files ``bench run`` / ``bench sweep`` wrote under a runs
 output) of Table 7's evaluation-only cells, whose training cell is ``<env>/<run>``. Cells are grouped into table rows by what was run (method,
 h, agent-config overrides, observation track, profile, evaluation seed set, M); within a row the
 seeds are the samples, so a cell never mixes the privileged-state and the pixel track: each
-row's *run* column names its track. Per cell we print our mean over seeds with a 95 % bootstrap interval across seeds,
-the per-seed values, n, and the paper's number beside it
-(:file:`paper_tables.csv`, transcribed from the paper).
+row names its track where it differs from the table's usual one. Per cell we print our mean
+over seeds with a 95 % bootstrap interval across seeds and the paper's number beside it
+(:file:`paper_tables.csv`, transcribed from the paper), per row n, and below each table every
+seed's values in a collapsed block.
 
 The interval is the percentile bootstrap over seeds (10,000 resamples, fixed generator, so the
 tables are byte-for-byte reproducible) from ``scipy.stats.bootstrap``. This is rliable's
@@ -19,10 +20,12 @@ resamples, so read the interval as a range of what the seeds did. The interquart
 (``scipy.stats.trim_mean(x, 0.25)``) is added where a row has at least 5 seeds.
 
 Outputs (all written atomically, only under ``--out`` and to ``--readme``): one Markdown page
-per table (``table2.md`` ... ``table7.md``, ``index.md``), and ``fig10.png/.svg`` (setting A)
-and ``fig11.png/.svg`` (setting B): running averages over the last 20 training episodes of
-success, cycle time and intervention rate against online hours, mean and interval over seeds.
-The committed Results pages and the README's headline are regenerated with::
+per table (``table2.md`` ... ``table7.md``), ``tables.md`` (their list and the seeds
+protocol), and ``fig10.png/.svg`` (setting A) and ``fig11.png/.svg`` (setting B): running
+averages over the last 20 training episodes of success, cycle time and intervention rate
+against online hours, mean and interval over seeds. ``index.md``, the Results section's
+hand-written overview, is never written. The committed Results pages and the README's
+headline are regenerated with::
 
     bench tables --runs leaderboard/runs --out docs/results --readme README.md --force
 """
@@ -41,9 +44,9 @@ from pathlib import Path
 import numpy as np
 
 from window_bench.harness.evaluation import atomic_write, atomic_write_text
-from window_bench.harness.methods import METHODS
+from window_bench.harness.methods import METHODS, get_preset
 from window_bench.harness.seeds import seed_set_of
-from window_bench.pixels.track import TRACK_LABELS
+from window_bench.harness.tracks import get_track
 
 PAPER_CSV = Path(__file__).with_name("paper_tables.csv")
 SETTINGS = {"A": "WindowInstall-A-v0", "B": "WindowInstall-B-v0"}
@@ -193,8 +196,9 @@ def _num(x, scale: float = 1.0, digits: int = 0) -> str:
     return "–" if x is None else f"{scale * x:.{digits}f}"
 
 
-def cell(values, scale: float = 1.0, digits: int = 0, per_seed: bool = True) -> str:
-    """``mean [lo, hi]`` over seeds, then the per-seed values (and IQM with >= 5 seeds)."""
+def cell(values, scale: float = 1.0, digits: int = 0) -> str:
+    """``mean [lo, hi]`` over seeds (and the IQM with >= 5 seeds); ``(k of n)`` where only k
+    seeds have a value. The values of each seed are :func:`per_seed`'s."""
     vals = [v for v in values if v is not None]
     if not vals:
         return "–"
@@ -205,11 +209,14 @@ def cell(values, scale: float = 1.0, digits: int = 0, per_seed: bool = True) -> 
     q = iqm(vals)
     if q is not None:
         out += f" IQM {_num(q, scale, digits)}"
-    if per_seed and len(values) > 1:
-        out += "<br>" + " · ".join(_num(v, scale, digits) for v in values)
     if len(vals) < len(values):
         out += f" ({len(vals)} of {len(values)})"
     return out
+
+
+def per_seed(values, scale: float = 1.0, digits: int = 0) -> str:
+    """The values in seed order, "–" for a seed without one."""
+    return " · ".join(_num(v, scale, digits) for v in values)
 
 
 def _paper(p: dict | None, key: str, digits: int = 0) -> str:
@@ -223,12 +230,46 @@ def _paper(p: dict | None, key: str, digits: int = 0) -> str:
 
 
 # ---------------------------------------------------------------------------- tables
+@dataclass(frozen=True)
+class Metric:
+    """One measured quantity: its column head, the Sample field that holds it, how it is
+    printed, and its column of :file:`paper_tables.csv`."""
+
+    head: str
+    attr: str
+    scale: float
+    digits: int
+    paper_key: str
+    paper_digits: int
+
+
+SUCCESS = Metric("Success %", "success", 100, 0, "final_success_pct", 0)
+TIME_TO_95 = Metric("Time-to-95 h", "time_to_95_h", 1, 2, "time_to_95_h", 2)
+CYCLE = Metric("Cycle time s", "cycle_s", 1, 1, "cycle_s", 1)
+TAKEOVER = Metric("Takeover min", "takeover_min", 1, 1, "human_effort_min", 0)
+STAGES = (Metric("Pr(S) %", "pr_S", 100, 1, "pr_S", 1),
+          Metric("Pr(I&#124;S) %", "pr_I_given_S", 100, 1, "pr_I_given_S", 1),
+          Metric("Pr(T&#124;I) %", "pr_T_given_I", 100, 1, "pr_T_given_I", 1))
+
+
+def _values(metric: Metric, samples) -> list:
+    return [getattr(s, metric.attr) for s in samples]
+
+
+def _ours(metric: Metric, key: "RowKey", samples) -> str:
+    values = _values(metric, samples)
+    if metric is TIME_TO_95:
+        m = METHODS.get(key.method)
+        if m is None or not m.online_updates:
+            return "–"                           # no online phase, nothing to reach
+        if all(v is None for v in values):
+            return "not reached"
+    return cell(values, metric.scale, metric.digits)
+
+
 def _label(key: RowKey) -> str:
     m = METHODS.get(key.method)
-    text = f"{m.label if m else key.method} (`{key.method}`)"
-    if key.overrides:
-        text += "<br>" + ", ".join(f"{k}={v}" for k, v in key.overrides)
-    return text
+    return m.label if m else f"`{key.method}`"
 
 
 def _order(key: RowKey):
@@ -237,11 +278,141 @@ def _order(key: RowKey):
             key.track != "state", key.profile, key.seed_set != "test", key.M)
 
 
-def _caption(keys, rows) -> str:
-    """Profile, budget, track, M and seed sets of the rows in a table."""
+def _run(key: RowKey) -> tuple[str, str, str, int]:
+    return key.track, key.profile, key.seed_set, key.M
+
+
+class RowNames:
+    """Short names for the rows of one table: the method's label (or h), "variant N" for a
+    row with agent-config overrides (spelled out in :meth:`notes`), and only those parts of
+    the run (track, profile, M, seed set) where the row differs from the table's usual run,
+    which the caption states once. A development-seed row is always marked *dev*."""
+
+    def __init__(self, keys):
+        runs = [_run(k) for k in keys]
+        # per field the most common value; a tie goes to the state track, the test seeds, the
+        # larger M, then the first in sorted order
+        prefer = (lambda t: t == "state", lambda p: 0, lambda s: s == "test", lambda M: M)
+        self.usual = tuple(max(sorted(set(f)), key=lambda v: (f.count(v), like(v)))
+                           for f, like in zip(zip(*runs), prefer)) if runs \
+            else ("state", "", "test", 0)
+        self.variants: dict[tuple, int] = {}
+        for k in keys:
+            if k.overrides:
+                self.variants.setdefault((k.method, k.overrides), len(self.variants) + 1)
+
+    def tags(self, key: RowKey, markdown: bool = True) -> list[str]:
+        track, profile, seed_set, M = self.usual
+        out = []
+        if key.track != track:
+            out.append(key.track)
+        if key.profile != profile:
+            out.append(f"{key.profile} profile")
+        if key.M != M:
+            out.append(f"M = {key.M}")
+        if key.seed_set == "dev":
+            out.append("*dev*" if markdown else "dev")
+        elif key.seed_set != seed_set:
+            out.append(key.seed_set)
+        return out
+
+    def _name(self, first: str, key: RowKey, markdown: bool) -> str:
+        n = self.variants.get((key.method, key.overrides))
+        return ", ".join([first] + ([f"variant {n}"] if n else []) + self.tags(key, markdown))
+
+    def method(self, key: RowKey, markdown: bool = True) -> str:
+        label = _label(key)
+        return self._name(label if markdown else label.strip("`"), key, markdown)
+
+    def horizon(self, key: RowKey) -> str:
+        return self._name(str(key.h), key, True)
+
+    def notes(self) -> str:
+        """One line per variant: its method, agent-config overrides and preset name."""
+        lines = []
+        for (method, overrides), n in self.variants.items():
+            preset = _preset_of(overrides)
+            lines.append(f"- Variant {n}: `{method}` with "
+                         + ", ".join(f"`{a}={b}`" for a, b in overrides)
+                         + (f" (the preset `{preset}`)" if preset else "") + ".")
+        return "\n".join(lines)
+
+
+def _preset_of(overrides: tuple) -> str | None:
+    """The name of the agent preset whose overrides these are, if any."""
+    from window_bench.harness.methods import PRESETS
+
+    return next((name for name in sorted(PRESETS)
+                 if _overrides({"agent_config_overrides": PRESETS.lookup(name)}) == overrides),
+                None)
+
+
+# (column head, the row's text in it)
+METHOD_COLUMN = ("Method", RowNames.method)
+H_COLUMN = ("h", RowNames.horizon)
+# one column, so that on a phone the row's setting and panel stay in view together
+OOD_COLUMNS = (("Setting, panel (m)", lambda names, k: f"{k.setting}, {k.panel}"), METHOD_COLUMN)
+
+
+def _paper_row(paper, table: int):
+    """The paper's row of ``table`` for a key; none for our variants (agent-config overrides)."""
+    return lambda k: None if k.overrides else paper.get((table, k.setting, k.method, k.h,
+                                                         k.panel))
+
+
+def _markdown_table(head: list[str], body: list[list[str]]) -> str:
+    return "\n".join(["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+                     + ["| " + " | ".join(cells) + " |" for cells in body])
+
+
+def _comparison(keys, rows, names, columns, metrics, paper_of, with_n: bool) -> str:
+    """One Markdown table: the row's name, n, then ours beside the paper's per metric."""
+    head = [c for c, _ in columns] + (["n"] if with_n else [])
+    for m in metrics:
+        head += [m.head, "paper"]
+    body = []
+    for k in keys:
+        cells = [name(names, k) for _, name in columns] + ([str(len(rows[k]))] if with_n else [])
+        for m in metrics:
+            cells += [_ours(m, k, rows[k]), _paper(paper_of(k), m.paper_key, m.paper_digits)]
+        body.append(cells)
+    return _markdown_table(head, body)
+
+
+def _per_seed_block(keys, rows, names, columns, metrics) -> str:
+    """Every seed's value of every metric, in a block the reader opens."""
+    table = _markdown_table(
+        [c for c, _ in columns] + ["seeds"] + [m.head for m in metrics],
+        [[name(names, k) for _, name in columns] + [" · ".join(str(s.seed) for s in rows[k])]
+         + [per_seed(_values(m, rows[k]), m.scale, m.digits) for m in metrics] for k in keys])
+    return '??? info "Per-seed values, in seed order"\n\n' + \
+        "\n".join("    " + line for line in table.splitlines())
+
+
+def _render(keys, rows, columns, groups, paper_of) -> str:
+    """A table's body: one table per group of metrics (the first with n), the variants'
+    overrides, the caption, and every seed's values in a collapsed block."""
+    names = RowNames(keys)
+    out = []
+    for i, (title, metrics) in enumerate(groups):
+        out += ([f"**{title}**", ""] if title else []) + \
+            [_comparison(keys, rows, names, columns, metrics, paper_of, with_n=i == 0), ""]
+    if names.variants:
+        out += [names.notes(), ""]
+    out += [_caption(keys), "",
+            _per_seed_block(keys, rows, names, columns, [m for _, g in groups for m in g])]
+    return "\n".join(out)
+
+
+def _caption(keys) -> str:
+    """The usual run of the table's rows, and the profile, budget, track, M and seed sets of
+    all of them."""
     from window_bench.harness.methods import PROFILES
 
-    parts = []
+    track, profile, seed_set, M = RowNames(keys).usual
+    parts = [f"Unless a row says otherwise: `{track}` track, `{profile}` profile, final "
+             f"evaluation with M = {M} on the "
+             f"{'held-out test' if seed_set == 'test' else 'development'} seeds"]
     for prof in sorted({k.profile for k in keys}):
         p = PROFILES.get(prof)
         if p is not None:
@@ -251,16 +422,11 @@ def _caption(keys, rows) -> str:
                          f"MLPs {'x'.join(map(str, p.hidden))}; time-to-95 from the checkpoint "
                          f"evaluations (M = {p.eval_episodes} on the development seeds every "
                          f"{p.checkpoint_every:,} env steps, the profile's M; only the final "
-                         f"checkpoint gets the M of the *run* column)")
-    sets = sorted({(k.seed_set, k.M) for k in keys})
-    parts.append("final evaluation: " + "; ".join(
-        f"M = {M} on the {'held-out test' if s == 'test' else 'development'} seeds"
-        for s, M in sets))
-    parts.append("observation track (the *run* column's first word): " + "; ".join(
+                         f"checkpoint gets the row's M)")
+    parts.append("Observation tracks: " + "; ".join(
         f"`{t}` = {TRACK_DESCRIPTIONS.get(t, t)}" for t in sorted({k.track for k in keys})))
-    dev = [k for k in keys if k.seed_set == "dev"]
     text = ". ".join(parts) + "."
-    if dev:
+    if any(k.seed_set == "dev" for k in keys):
         text += (" Rows marked *dev* were measured on the development seeds 100000… that our "
                  "QC-FQL choices were tuned on: optimistic by construction, not comparable "
                  "with test-seed rows.")
@@ -274,7 +440,7 @@ def _group_rows(rows, setting: str, only=None, panel: str = "0.5x0.5"):
 
 
 TRACK_DESCRIPTIONS = {
-    "state": f"{TRACK_LABELS['state']} (the 52-float simulator state, with the panel's exact "
+    "state": f"{get_track('state').label} (the 52-float simulator state, with the panel's exact "
              "pose relative to the seat: not what the paper's agents observe)",
     "pixels": "the paper's observation: wrist and side RGB views (128 x 128) through the frozen "
               "ResNet-10, and 18 proprioceptive values (see [the pixel track](../pixels.md))"}
@@ -285,81 +451,37 @@ def _mark(key: RowKey) -> str:
             + (", *dev*" if key.seed_set == "dev" else ""))
 
 
+def _default_h(key: RowKey) -> bool:
+    return key.method in METHODS and key.h == METHODS[key.method].h
+
+
 def _table_main(rows, paper, table: int, setting: str) -> tuple[str, list]:
-    keys = _group_rows(rows, setting, lambda k: k.h == METHODS.get(k.method, k).h
-                       if k.method in METHODS else True)
-    head = ("| Method | run | n | Final success % (ours) | paper | Time-to-95 h (ours) | paper "
-            "| Cycle time s (ours) | paper | Takeover min (ours) | paper |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|")
-    lines = [head]
-    for k in keys:
-        ss = rows[k]
-        p = paper.get((table, setting, k.method, k.h, "0.5x0.5")) if not k.overrides else None
-        t95 = [s.time_to_95_h for s in ss]
-        reached = sum(v is not None for v in t95)
-        t95_text = ("–" if not METHODS.get(k.method) or not METHODS[k.method].online_updates
-                    else cell(t95, digits=2) if reached else f"not reached (0 of {len(ss)})")
-        lines.append(f"| {_label(k)} | {_mark(k)} | {len(ss)} | "
-                     f"{cell([s.success for s in ss], 100)} | {_paper(p, 'final_success_pct')} | "
-                     f"{t95_text} | {_paper(p, 'time_to_95_h', 2)} | "
-                     f"{cell([s.cycle_s for s in ss], digits=1)} | {_paper(p, 'cycle_s', 1)} | "
-                     f"{cell([s.takeover_min for s in ss], digits=1)} | "
-                     f"{_paper(p, 'human_effort_min')} |")
-    return "\n".join(lines), keys
+    keys = _group_rows(rows, setting, lambda k: _default_h(k) or k.method not in METHODS)
+    return _render(keys, rows, [METHOD_COLUMN], [(None, (SUCCESS, TIME_TO_95, CYCLE, TAKEOVER))],
+                   _paper_row(paper, table)), keys
 
 
-def _stagewise_cols(ss, p) -> str:
-    return (f"{cell([s.pr_S for s in ss], 100, 1)} | {_paper(p, 'pr_S', 1)} | "
-            f"{cell([s.pr_I_given_S for s in ss], 100, 1)} | {_paper(p, 'pr_I_given_S', 1)} | "
-            f"{cell([s.pr_T_given_I for s in ss], 100, 1)} | {_paper(p, 'pr_T_given_I', 1)}")
-
-
-_STAGE_HEAD = "Pr(S) % (ours) | paper | Pr(I&#124;S) % (ours) | paper | Pr(T&#124;I) % (ours) | paper"
+STAGEWISE = "Stage-wise outcomes of the same rows"
 
 
 def _table4(rows, paper) -> tuple[str, list]:
-    keys = _group_rows(rows, "B", lambda k: k.method in METHODS and k.h == METHODS[k.method].h)
-    lines = [f"| Method | run | n | Success % (ours) | paper | {_STAGE_HEAD} |",
-             "|---" * 10 + "|"]
-    for k in keys:
-        ss = rows[k]
-        p = paper.get((3, "B", k.method, k.h, "0.5x0.5")) if not k.overrides else None
-        lines.append(f"| {_label(k)} | {_mark(k)} | {len(ss)} | "
-                     f"{cell([s.success for s in ss], 100)} | {_paper(p, 'final_success_pct')} | "
-                     f"{_stagewise_cols(ss, p)} |")
-    return "\n".join(lines), keys
+    keys = _group_rows(rows, "B", _default_h)
+    return _render(keys, rows, [METHOD_COLUMN], [(None, (SUCCESS, *STAGES))],
+                   _paper_row(paper, 3)), keys
 
 
 def _table_h(rows, paper, table: int, setting: str) -> tuple[str, list]:
-    keys = _group_rows(rows, setting, lambda k: k.method == "qcfql-no-intervention")
-    stage = setting == "B"
-    head = "| h | run | n | Success % (ours) | paper | Cycle time s (ours) | paper |"
-    lines = [head + (f" {_STAGE_HEAD} |" if stage else ""),
-             "|---" * (7 + 6 * stage) + "|"]
-    for k in sorted(keys, key=lambda k: (k.h, _order(k))):
-        ss = rows[k]
-        p = paper.get((table, setting, k.method, k.h, "0.5x0.5")) if not k.overrides else None
-        h = f"{k.h}" + ("<br>" + ", ".join(f"{a}={b}" for a, b in k.overrides) if k.overrides else "")
-        lines.append(f"| {h} | {_mark(k)} | {len(ss)} | {cell([s.success for s in ss], 100)} | "
-                     f"{_paper(p, 'final_success_pct')} | {cell([s.cycle_s for s in ss], digits=1)}"
-                     f" | {_paper(p, 'cycle_s', 1)} |"
-                     + (f" {_stagewise_cols(ss, p)} |" if stage else ""))
-    return "\n".join(lines), keys
+    keys = sorted(_group_rows(rows, setting, lambda k: k.method == "qcfql-no-intervention"),
+                  key=lambda k: (k.h, _order(k)))
+    groups = [(None, (SUCCESS, CYCLE))] + ([(STAGEWISE, STAGES)] if setting == "B" else [])
+    return _render(keys, rows, [H_COLUMN], groups, _paper_row(paper, table)), keys
 
 
 def _table7(rows, paper) -> tuple[str, list]:
     keys = sorted((k for k in rows if k.panel != "0.5x0.5"),
                   key=lambda k: (k.setting, list(PANELS.values()).index(k.panel), _order(k)))
-    lines = [f"| Setting | Panel (m) | Method | run | n | Success % (ours) | paper | "
-             f"Cycle time s (ours) | paper | {_STAGE_HEAD} |", "|---" * 15 + "|"]
-    for k in keys:
-        ss = rows[k]
-        p = paper.get((7, k.setting, k.method, k.h, k.panel)) if not k.overrides else None
-        lines.append(f"| {k.setting} | {k.panel} | {_label(k)} | {_mark(k)} | {len(ss)} | "
-                     f"{cell([s.success for s in ss], 100)} | {_paper(p, 'final_success_pct')} | "
-                     f"{cell([s.cycle_s for s in ss], digits=1)} | {_paper(p, 'cycle_s', 1)} | "
-                     f"{_stagewise_cols(ss, p)} |")
-    return "\n".join(lines), keys
+    return _render(keys, rows, list(OOD_COLUMNS), [(None, (SUCCESS, CYCLE)), (STAGEWISE, STAGES)],
+                   _paper_row(paper, 7)), keys
 
 
 # ---------------------------------------------------------------------------- figures
@@ -396,8 +518,10 @@ def _band(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return mean, lo, hi
 
 
-def plot_curves(rows, setting: str, path_png: Path, path_svg: Path) -> list[RowKey]:
-    """Fig. 10 (A) / Fig. 11 (B): one line per method, mean and interval over seeds."""
+def plot_curves(rows, setting: str, path_png: Path, path_svg: Path,
+                names: RowNames | None = None) -> list[RowKey]:
+    """Fig. 10 (A) / Fig. 11 (B): one line per row with training episodes, mean and interval
+    over seeds, named as the table names it (``names``, the table's :class:`RowNames`)."""
     import warnings
 
     import matplotlib
@@ -405,12 +529,13 @@ def plot_curves(rows, setting: str, path_png: Path, path_svg: Path) -> list[RowK
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    keys = [k for k in _group_rows(rows, setting, lambda k: k.method in METHODS
-                                   and k.h == METHODS[k.method].h)
-            if any(s.episodes for s in rows[k])]
+    keys = [k for k in _group_rows(rows, setting, _default_h) if any(s.episodes for s in rows[k])]
+    names = names or RowNames(keys)
     matplotlib.rcParams["svg.hashsalt"] = "window-bench"
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2))
-    names = ["success (%)", "cycle time of successes (s)", "intervention rate (%)"]
+    # drawn near the width the page shows it at, so that its text reads at the body's size
+    fig, axes = plt.subplots(1, 3, figsize=(9.6, 3.4 + 0.2 * -(-len(keys) // 2)),
+                             layout="constrained")
+    ylabels = ["success (%)", "cycle time of successes (s)", "intervention rate (%)"]
     scales = [100, 1, 100]
     for i, k in enumerate(keys):
         ss = [s for s in rows[k] if s.episodes]
@@ -421,21 +546,19 @@ def plot_curves(rows, setting: str, path_png: Path, path_svg: Path) -> list[RowK
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)   # all-NaN early points
                 mean, lo, hi = _band(curves[:, a])
-            label = (f"{METHODS[k.method].label}"
-                     f"{''.join(f', {a}={b}' for a, b in k.overrides)} ({k.track}, {k.profile}, "
-                     f"n={len(ss)}{', dev' if k.seed_set == 'dev' else ''})")
-            axes[a].plot(x, scales[a] * mean, color=f"C{i}", label=label)
-            axes[a].fill_between(x, scales[a] * lo, scales[a] * hi, color=f"C{i}", alpha=0.2)
-    for a, name in enumerate(names):
-        axes[a].set_ylabel(name)
-        axes[a].set_xlabel("online interaction (simulated h)")
+            axes[a].plot(x, scales[a] * mean, color=f"C{i % 10}", ls=["-", "--"][i // 10 % 2],
+                         label=names.method(k, markdown=False))
+            axes[a].fill_between(x, scales[a] * lo, scales[a] * hi, color=f"C{i % 10}", alpha=0.2)
+    for a, name in enumerate(ylabels):
+        axes[a].set_ylabel(name, fontsize=9.5)
+        axes[a].set_xlabel("online hours (simulated)", fontsize=9.5)
+        axes[a].tick_params(labelsize=8.5)
         axes[a].grid(alpha=0.3)
     if keys:
-        fig.legend(*axes[0].get_legend_handles_labels(), fontsize=7, loc="lower center",
+        fig.legend(*axes[0].get_legend_handles_labels(), fontsize=9.5, loc="outside lower center",
                    ncol=2, frameon=False)
     fig.suptitle(f"Experiment {setting}: running average over the last {RATE_WINDOW} training "
                  f"episodes, mean and 95 % bootstrap interval over seeds", fontsize=10)
-    fig.tight_layout(rect=(0, 0.06 * -(-len(keys) // 2), 1, 1))
     atomic_write(path_png, lambda f: fig.savefig(f, format="png", dpi=100,
                                                  metadata={"Software": None}))
     atomic_write(path_svg, lambda f: fig.savefig(f, format="svg", metadata={"Date": None}))
@@ -454,62 +577,78 @@ TITLES = {
 }
 
 COLUMNS = """\
-How to read a cell: **mean over seeds** [95 % bootstrap interval across seeds], then the
-per-seed values in seed order (IQM added from 5 seeds). *n* is the number of seeds. *run*
-names the observation track (`state`: privileged state; `pixels`: the paper's two camera
-views and proprioception), the profile and the final evaluation's M. Success and the stage-wise rates are measured
-on the final checkpoint with interventions off. *paper* is the paper's number (its Wilson
-interval where it gives one), from `window_bench/harness/paper_tables.csv`; a row with agent-config
-overrides is our variant and has no paper number."""
+How to read a cell: **mean over seeds** [95 % bootstrap interval across seeds] (the IQM added
+from 5 seeds; *(k of n)* where only k seeds have a value, e.g. a cycle time needs a success);
+every seed's own value is under *Per-seed values*. *n* is the number of seeds. A row's name
+adds only what differs from the table's usual run, stated under the table: the observation
+track (`state`: privileged state; `pixels`: the paper's two camera views and
+proprioception), the profile, the final evaluation's M, *dev* for development seeds; a
+*variant N* runs the agent-config overrides listed under the table and has no paper
+number. Success and the stage-wise rates are measured on the final checkpoint with
+interventions off; *not reached* means no checkpoint of any seed reached 95 % success.
+*paper* is the paper's number (its Wilson interval where it gives one), from
+`window_bench/harness/paper_tables.csv`."""
 
 PROTOCOL = """\
-What our protocol differs in: the budget and network sizes of the profile named in each
-row (the paper's is the `paper` profile: 3.0 simulated h, 4 x 512 MLPs, UTD 2); the
-observation track each row names (the paper's agents see pixels; a `state` row observes the
-privileged state, an easier task); our QC-FQL departures (noise z = 0 for acting,
-bootstrapping and distillation, policy averaging, the flow prior on accepted episodes without
-takeover steps; see [the QC-FQL page](../qcfql.md)); and the evaluation seeds: reported numbers
-use the held-out test seeds (see [Results](index.md))."""
+What our protocol differs in: the budget and network sizes of each row's profile (the
+paper's is the `paper` profile: 3.0 simulated h, 4 x 512 MLPs, UTD 2); the observation track
+(the paper's agents see pixels; a `state` row observes the privileged state, an easier
+task); our QC-FQL departures (noise z = 0 for acting, bootstrapping and distillation, policy
+averaging, the flow prior on accepted episodes without takeover steps; see [the QC-FQL
+page](../qcfql.md)); and the evaluation seeds: reported numbers use the held-out test seeds
+(see [the seeds protocol](tables.md#the-evaluation-seeds-protocol))."""
 
 
 def _page(table: int, body: str, keys: list, rows, root_label: str, figure: str | None) -> str:
-    ref, title, _ = TITLES[table]
-    out = ["---", "hide:", "  - toc", "---", "",     # the wide tables need the page's width
+    ref, title, setting = TITLES[table]
+    out = ["---", "hide:", "  - toc", "---", "",     # the tables get the page's width
            f"# {ref}: {title}", "",
            f"Generated by `bench tables` from the raw run files under `{root_label}`. "
            "Do not edit by hand.", ""]
     if keys:
-        out += [body, "", _caption(keys, rows), ""]
+        out += [body, ""]
     else:
         out += ["No runs for this table yet: run its grid "
                 f"(`bench sweep experiments/table{table}.toml`) and regenerate.", ""]
     if figure:
-        out += [f"![{figure}]({figure}.png)", "",
-                f"{figure.replace('fig', 'Fig. ')}: [SVG]({figure}.svg).", ""]
+        out += [f"![{figure.replace('fig', 'Fig. ')}: training curves of setting {setting}]"
+                f"({figure}.png)", "",
+                f"*{figure.replace('fig', 'Fig. ')} (setting {setting}): success, cycle time of "
+                f"the successes and intervention rate, running averages over the last "
+                f"{RATE_WINDOW} training episodes against simulated online hours; mean and 95 % "
+                f"bootstrap interval over each row's seeds, lines named as the rows above.* "
+                f"[SVG]({figure}.svg)", ""]
     out += [COLUMNS, "", PROTOCOL, ""]
     if keys:
-        out += ["Raw files of this table:", ""]
+        variants = RowNames(keys).variants
+        out += ['??? note "Raw files of this table"', ""]
         for k in keys:
-            out += [f"- {k.method}, h = {k.h}, {_mark(k)}: " +
-                    ", ".join(f"`{root_label}/{s.path}`" for s in rows[k])]
+            n = variants.get((k.method, k.overrides))
+            out += [f"    - {k.method}, h = {k.h}, {_mark(k)}{f', variant {n}' if n else ''}: "
+                    + ", ".join(f"`{root_label}/{s.path}`" for s in rows[k])]
         out.append("")
     return "\n".join(out)
 
 
-INDEX = """\
-# Results
+#: The generated list of tables and the seeds protocol. The Results section's index.md is the
+#: hand-written overview, which bench tables never writes.
+TABLES_NAME = "tables.md"
+TABLES_PAGE = """\
+# Tables 2-7
 
 Generated by `bench tables` from the raw run files under `{root}`. Do not edit by hand.
+What they add up to, claim by claim: [Results](index.md).
 
 Each page regenerates one of the paper's tables with the paper's numbers beside ours:
 
 {links}
 
-Every row names its observation track in its *run* column: `state` is the **privileged
-state** (the 52-float simulator state, including the panel's exact pose relative to the
-seat), `pixels` the paper's observation (two 128 x 128 RGB views through a frozen ResNet-10
-and 18 proprioceptive values, [the pixel track](../pixels.md)). The two tracks never share a
-row, and the paper's numbers are pixel-track numbers.
+Every row is on one observation track: `state` is the **privileged state** (the 52-float
+simulator state, including the panel's exact pose relative to the seat), `pixels` the
+paper's observation (two 128 x 128 RGB views through a frozen ResNet-10 and 18
+proprioceptive values, [the pixel track](../pixels.md)). Under each table its usual track,
+profile and evaluation are stated once, and a row names what differs. The two tracks never
+share a row, and the paper's numbers are pixel-track numbers.
 
 ## The evaluation seeds protocol
 
@@ -537,14 +676,14 @@ grids](sweep.md).
 
 
 #: The README's headline rows: (label, method, agent-config overrides). The paper's QC-FQL is
-#: ``baselines.qcfql.PAPER_AGENT``, the row Table 2/3's grids run beside our default.
+#: the preset ``qcfql-as-published`` (window_bench/catalog.py), the row Table 2/3's grids run
+#: beside our default.
 HEADLINE_START, HEADLINE_END = "<!-- bench tables: headline -->", "<!-- /bench tables -->"
 
 
 def _headline_rows():
-    from baselines.qcfql import PAPER_AGENT
-
-    paper_agent = tuple(sorted((k, json.dumps(v)) for k, v in PAPER_AGENT.items()))
+    paper = get_preset("qcfql-as-published")
+    paper_agent = tuple(sorted((k, json.dumps(v)) for k, v in paper.items()))
     return (("Ours (complete pipeline)", "qcfql", ()),
             ("QC-FQL as published (`PAPER_AGENT`)", "qcfql", paper_agent),
             ("Ours (offline-only)", "qcfql-offline", ()),
@@ -565,7 +704,7 @@ def headline(rows, paper, profile: str = "cpu") -> str:
                     (setting, method, overrides, "state", profile, "test", "0.5x0.5")
                     and k.h == METHODS[method].h]
             ss = rows[keys[0]] if keys else []
-            ours = (f"{cell([s.success for s in ss], 100, per_seed=False)} (n = {len(ss)})"
+            ours = (f"{cell([s.success for s in ss], 100)} (n = {len(ss)})"
                     if ss else "not run yet")
             p = paper.get((table, setting, method, METHODS[method].h, "0.5x0.5"))
             cols += [ours, _paper(p, "final_success_pct")]   # the paper ran one QC-FQL
@@ -595,7 +734,7 @@ def outputs(out: str | os.PathLike, figures: bool = True,
     """Every file :func:`build` writes, and nothing else (``bench tables`` refuses to
     overwrite them without ``--force``)."""
     out = Path(out)
-    files = [out / f"table{t}.md" for t in TITLES] + [out / "index.md"]
+    files = [out / f"table{t}.md" for t in TITLES] + [out / TABLES_NAME]
     if figures:
         files += [out / f"{fig}.{ext}" for fig in ("fig10", "fig11") for ext in ("png", "svg")]
     return files + ([Path(readme)] if readme is not None else [])
@@ -618,13 +757,14 @@ def build(root: str | os.PathLike, out: str | os.PathLike, figures: bool = True,
              7: (_table7(rows, paper), None)}
     for table, ((body, keys), fig) in specs.items():
         if fig and figures:
-            plot_curves(rows, TITLES[table][2], out / f"{fig}.png", out / f"{fig}.svg")
+            plot_curves(rows, TITLES[table][2], out / f"{fig}.png", out / f"{fig}.svg",
+                        RowNames(keys))
         pages[f"table{table}.md"] = _page(table, body, keys, rows, label, fig if figures else None)
     links = "\n".join(f"- [{TITLES[t][0]}: {TITLES[t][1]}](table{t}.md)" for t in TITLES)
     n_evals = sum(len(v) for k, v in rows.items() if k.panel != "0.5x0.5")
-    pages["index.md"] = INDEX.format(root=label, links=links, n_evals=n_evals,
-                                     n_runs=sum(len(v) for k, v in rows.items()
-                                                if k.panel == "0.5x0.5"))
+    pages[TABLES_NAME] = TABLES_PAGE.format(root=label, links=links, n_evals=n_evals,
+                                            n_runs=sum(len(v) for k, v in rows.items()
+                                                       if k.panel == "0.5x0.5"))
     for name, text in pages.items():
         atomic_write_text(out / name, text)
     if readme is not None:

@@ -6,17 +6,16 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
 
+from window_bench import cli_args as arg
+
 
 def _number_in(upper: float):
     """A number in (0, upper]: checked by argparse, before any work."""
-    from window_bench.cli import checked_number
-
-    return checked_number(float, lambda v: 0.0 < v <= upper, f"in (0, {upper}]")
+    return arg.checked_number(float, lambda v: 0.0 < v <= upper, f"in (0, {upper}]")
 
 
 def cannot_render() -> str | None:
@@ -89,24 +88,23 @@ def cmd_encoder_info(args) -> int:
 
 def add_encoder_parser(sub) -> None:
     from window_bench import ENV_IDS
-    from window_bench.cli import _add_out_file, _positive, _seed
 
     enc = sub.add_parser("encoder", help="the pixel track's backbone: pretrain it in-domain "
                                          "or inspect a weights file")
     esub = enc.add_subparsers(dest="encoder_command", required=True)
     t = esub.add_parser("train", help="pretrain the ResNet-10 on rendered frames of "
                                       "scripted-installer episodes (docs/pixels.md)")
-    _add_out_file(t, "weights file to write (.safetensors)", required=True)
+    arg.add_out_file(t, "weights file to write (.safetensors)", required=True)
     t.add_argument("--env", nargs="+", choices=ENV_IDS,
                    default=["WindowInstall-A-v0", "WindowInstall-B-v0"])
-    t.add_argument("--episodes", type=_positive, default=64, help="training episodes")
-    t.add_argument("--heldout-episodes", type=_positive, default=12)
-    t.add_argument("--every", type=_positive, default=4, help="keep every n-th step's frames")
-    t.add_argument("--max-steps", type=_positive, default=200, help="steps per episode at most")
-    t.add_argument("--epochs", type=_positive, default=2)
-    t.add_argument("--batch", type=_positive, default=32, help="frames per step (2 views each)")
+    t.add_argument("--episodes", type=arg.positive, default=64, help="training episodes")
+    t.add_argument("--heldout-episodes", type=arg.positive, default=12)
+    t.add_argument("--every", type=arg.positive, default=4, help="keep every n-th step's frames")
+    t.add_argument("--max-steps", type=arg.positive, default=200, help="steps per episode at most")
+    t.add_argument("--epochs", type=arg.positive, default=2)
+    t.add_argument("--batch", type=arg.positive, default=32, help="frames per step (2 views each)")
     t.add_argument("--lr", type=_number_in(1.0), default=2e-3)
-    t.add_argument("--seed", type=_seed, default=0)
+    t.add_argument("--seed", type=arg.seed, default=0)
     t.add_argument("--max-minutes", type=_number_in(float("inf")), default=None,
                    help="stop training after this many minutes (the record says so)")
     t.set_defaults(func=cmd_encoder_train)

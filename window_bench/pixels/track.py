@@ -1,42 +1,117 @@
-"""The observation tracks as the harness needs them: envs, demonstrations, agents.
+"""The pixel track: the paper's observation, registered as the harness's track ``pixels``.
 
-``state`` is the privileged 52-float ``obs_mode="flat"`` observation every result so far
-uses; ``pixels`` is the paper's (two 128 x 128 views + 18 proprioceptive values through the
-frozen ResNet-10, :class:`~window_bench.pixels.features.PixelFeatures`). These functions
-keep the track out of the harness's logic: it asks for an env, the demonstrations and an
-agent of a track and gets objects with the same interfaces on both.
+Two 128 x 128 views + 18 proprioceptive values through the frozen ResNet-10
+(:class:`~window_bench.pixels.features.PixelFeatures`), instead of the state track's
+privileged 52-float ``obs_mode="flat"`` observation. :class:`PixelTrack` tells the harness
+(:mod:`window_bench.harness.tracks`) everything that differs: which agent runs a method here
+(:data:`PIXEL_KINDS`), what a Stage I of that agent depends on, the env a frozen policy is
+evaluated in; for one run, :class:`PixelObservation` resolves the backbone, re-observes the
+demonstrations (cached, :mod:`window_bench.pixels.demo_cache`), wraps the training env in
+the encoder and lets the installer watch the scene (:class:`StateSupervisor`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 
-# No torch import at module level: `bench tables` / `bench leaderboard` read TRACK_LABELS.
-TRACKS = ("state", "pixels")
-TRACK_LABELS = {"state": "privileged state", "pixels": "pixels (2 x RGB 128² + proprioception)"}
-#: Agent kind on the state track -> its kind on the pixel track (harness/methods.py AGENTS).
+from window_bench.harness.methods import agent_class
+from window_bench.harness.tracks import DEFAULT_TRACK, RunObservation, Track, get_track
+
+# No torch import at module level: `import window_bench` registers this track.
+#: Agent kind on the state track -> its kind on the pixel track (window_bench.catalog
+#: registers both).
 PIXEL_KINDS = {"qcfql": "qcfql-pixels", "hilserl": "hilserl-pixels", "sac": "sac-pixels",
                "act": "act-pixels"}
 
 
-def check_track(track: str) -> str:
-    if track not in TRACKS:
-        raise ValueError(f"track={track!r}; allowed: {', '.join(TRACKS)}")
-    return track
+class PixelTrack(Track):
+    """``pixels``: the paper's camera views (see the module docstring)."""
+
+    name = "pixels"
+    label = "pixels (2 x RGB 128² + proprioception)"
+    #: What every pixel agent adds to its state-track learner's Stage I: the front end
+    #: (aggregation, fusion) and the encoder it trains through.
+    front_end_modules = ("window_bench.pixels.agent", "window_bench.pixels.encoder")
+
+    def agent_kind(self, kind: str) -> str:
+        """``ValueError`` for an agent that has no pixel front end yet."""
+        if kind not in PIXEL_KINDS:
+            raise ValueError(f"track='pixels' is not available for the {kind!r} agent yet; "
+                             f"pixel agents: {', '.join(PIXEL_KINDS)}")
+        return PIXEL_KINDS[kind]
+
+    def stage1_modules(self, kind: str) -> tuple[str, ...]:
+        """The state-track learner's modules, then the front end's (none without a Stage I)."""
+        learner = {v: k for k, v in PIXEL_KINDS.items()}.get(kind)
+        if learner is None:
+            raise ValueError(f"agent kind {kind!r} does not run on the pixel track; its kinds: "
+                             f"{', '.join(PIXEL_KINDS.values())}")
+        own = agent_class(learner).stage1_modules()
+        return (*own, *self.front_end_modules) if own else ()
+
+    def eval_env(self, env_id: str, policy_state: dict, observe_every: int = 1, **kwargs):
+        """The policy's env: a pixel agent names its encoder weights in its state. Pixels are
+        rendered and encoded only where the policy reads them (its chunk grid)."""
+        return make_track_env(env_id, self.name, weights=policy_state.get("encoder_weights"),
+                              observe_every=observe_every, **kwargs)
+
+    def for_run(self, encoder_weights: str | None = None) -> "PixelObservation":
+        return PixelObservation(self, encoder_weights)
 
 
-def track_agent_kind(kind: str, track: str) -> str:
-    """The agent kind that runs ``kind``'s method on ``track``; ``ValueError`` for an agent
-    that has no pixel front end yet."""
-    if check_track(track) == "state":
-        return kind
-    if kind not in PIXEL_KINDS:
-        raise ValueError(f"track='pixels' is not available for the {kind!r} agent yet; "
-                         f"pixel agents: {', '.join(PIXEL_KINDS)}")
-    return PIXEL_KINDS[kind]
+class PixelObservation(RunObservation):
+    """One run on the pixel track. The backbone is resolved when the run is made, so a wrong
+    weights file fails before any work; ``record`` names the weights and their sha256."""
+
+    def __init__(self, track: PixelTrack, encoder_weights: str | None):
+        from window_bench.harness.files import sha256_file
+        from window_bench.pixels.encoder import FEATURE_VALUES
+        from window_bench.pixels.weights import DEFAULT_WEIGHTS, resolve_backbone, weights_record
+
+        super().__init__(track)
+        self.replay_half_obs = FEATURE_VALUES   # both views' maps, float16-exact
+        if encoder_weights is not None:
+            encoder_weights = str(Path(encoder_weights).resolve())
+        self.backbone, label = resolve_backbone(encoder_weights)
+        self.encoder_weights = encoder_weights
+        path = DEFAULT_WEIGHTS if encoder_weights is None else Path(encoder_weights)
+        record = weights_record(path)
+        self.record.update(weights=label, sha256=sha256_file(path),
+                           **{k: record[k] for k in ("command", "heldout_quality")
+                              if k in record})
+
+    def demos_cache(self, cache_dir: Path | None, demos_root: Path) -> Path:
+        from window_bench.pixels.demo_cache import DEFAULT_SUBDIR
+
+        return cache_dir or demos_root / DEFAULT_SUBDIR
+
+    def observe_demos(self, episodes: list, env_id: str, cache: Path,
+                      progress: bool) -> tuple[list, dict]:
+        """The demos re-observed under the backbone, from the cache when it holds them."""
+        from window_bench.pixels.demo_cache import cached_pixel_demos
+
+        return cached_pixel_demos(episodes, env_id, self.backbone, cache, progress)
+
+    def configure(self, agent) -> None:
+        agent.encoder_weights = self.encoder_weights   # named in its policy files
+
+    def training_env(self, env_id: str, acceptance_noise: dict | None, max_episode_steps: int,
+                     observe_every: int):
+        """Rendered and encoded only on the chunk grid: the replay's chunked transitions and
+        the policy read nothing else (h = 1 learners: every step)."""
+        from window_bench.envs.wrappers import make_training_env
+        from window_bench.pixels.features import PixelFeatures
+
+        env = make_training_env(env_id, acceptance_noise, obs_mode="pixels",
+                                max_episode_steps=max_episode_steps)
+        return PixelFeatures(env, self.backbone, observe_every=observe_every)
+
+    def supervisor(self, supervisor):
+        return StateSupervisor(supervisor)   # the installer sees the scene
 
 
 def make_track_env(env_id: str, track: str, backbone=None, *, weights=None,
@@ -47,7 +122,7 @@ def make_track_env(env_id: str, track: str, backbone=None, *, weights=None,
     (pixels): render and encode only on the chunk grid of a policy with that horizon
     (:class:`PixelFeatures`); the state track's observation costs nothing to make and is
     made every step whatever it says."""
-    if check_track(track) == "state":
+    if get_track(track).name == DEFAULT_TRACK:
         return gym.make(env_id, obs_mode="flat", **kwargs)
     from window_bench.pixels.features import make_pixel_env
 
