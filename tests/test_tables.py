@@ -255,6 +255,9 @@ def test_leaderboard_names_the_track_and_keeps_tracks_apart(tmp_path):
     r_state, r_pix = (check_results(d / "results.json") for d in (d_state, d_pix))
     assert run_dest(r_state, "lb").name == "qcfql-offline-smoke-s0"
     assert run_dest(r_pix, "lb").name == "qcfql-offline-pixels-smoke-s0"
+    # another chunk horizon or operator profile never lands on the default run's directory
+    r_var = {**r_state, "method": {**r_state["method"], "h": 5}, "operator": "attentive"}
+    assert run_dest(r_var, "lb").name == "qcfql-offline-h5-attentive-smoke-s0"
     body = leaderboard(runs, readme=None, snippet=None)
     rows = [ln for ln in body.splitlines() if "(`qcfql-offline`)" in ln]
     assert rows[0].startswith("| state | WindowInstall-A-v0 |") and "| 90 [" in rows[0]

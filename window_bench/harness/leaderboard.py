@@ -30,6 +30,7 @@ from window_bench.harness.evaluation import atomic_write_text
 from window_bench.harness.files import MANIFEST, read_manifest
 from window_bench.harness.methods import METHODS
 from window_bench.harness.tracks import DEFAULT_TRACK
+from window_bench.installer.operators import DEFAULT_OPERATOR
 from window_bench.harness.schemas import RUN_FILES, SAFE_NAME, check_results, md_text, \
     results_schema  # noqa: F401  (results_schema: the leaderboard's schema, documented here)
 
@@ -42,13 +43,33 @@ def override_tag(items) -> str:
                    for k, v in items)
 
 
+def _own_h(results: dict) -> int | None:
+    """The run's chunk horizon where it is not its method's (Tables 5/6), else None."""
+    m = results["method"]
+    default = METHODS[m["name"]].h if m["name"] in METHODS else None
+    return m["h"] if default is not None and m.get("h", default) != default else None
+
+
+def _operator(results: dict) -> str | None:
+    """The run's operator profile where it is not the default, else None."""
+    op = results.get("operator", DEFAULT_OPERATOR)
+    return None if op == DEFAULT_OPERATOR else op
+
+
 def run_dest(results: dict, root: str | os.PathLike) -> Path:
-    """``root/<env>/<method><overrides>[-pixels]-<profile>-s<seed>``, checked to stay inside
-    ``root``: a pixel-track run never lands on the state-track run of the same method and seed."""
-    tag = override_tag((results.get("agent_config_overrides") or {}).items())
+    """``root/<env>/<method>[-h<h>]<overrides>[-<track>][-<operator>]-<profile>-s<seed>``,
+    checked to stay inside ``root``: a run with another chunk horizon, track or operator
+    profile never lands on the default run of the same method and seed (``-h<h>`` as
+    ``bench sweep`` names its Tables 5/6 cells)."""
+    method = results["method"]["name"]
+    h, operator = _own_h(results), _operator(results)
+    tag = "" if h is None else f"-h{h}"
+    tag += override_tag((results.get("agent_config_overrides") or {}).items())
     if _track(results) != DEFAULT_TRACK:
         tag += f"-{_track(results)}"
-    name = f"{results['method']['name']}{tag}-{results['profile']['name']}-s{results['seed']}"
+    if operator is not None:
+        tag += f"-{operator}"
+    name = f"{method}{tag}-{results['profile']['name']}-s{results['seed']}"
     dest = Path(root) / results["env_id"] / name
     if not SAFE_NAME.match(name) or not dest.resolve().is_relative_to(Path(root).resolve()):
         raise ValueError(f"leaderboard entry name {name!r} is not one safe directory name")
@@ -106,9 +127,10 @@ def table(results: list[dict]) -> str:
         online = f["sim_hours"] if m["online_updates"] or m["warm_start"] else None
         t95 = f.get("time_to_95_sim_hours")
         cyc = fe.get("cycle_time_s")
-        h = (f", h={m['h']}" if m["name"] in METHODS
-             and m.get("h", METHODS[m["name"]].h) != METHODS[m["name"]].h else "")
+        h = "" if _own_h(r) is None else f", h={_own_h(r)}"
         extra = "".join(f", {k}={v}" for k, v in (r.get("agent_config_overrides") or {}).items())
+        if _operator(r) is not None:
+            extra += f", operator {md_text(_operator(r))}"
         who = (f"| {_track(r)} | {r['env_id']} | {md_text(m['label'])} (`{m['name']}`{h}"
                f"{extra}) | {r['profile']['name']} | {r['seed']} |")
         lines.append(

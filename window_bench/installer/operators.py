@@ -135,6 +135,10 @@ OPERATORS: dict[str, OperatorProfile] = {
 }
 
 
+#: The profile a run uses unless told otherwise (``--operator``).
+DEFAULT_OPERATOR = "average"
+
+
 def get_operator(name_or_profile: str | OperatorProfile) -> OperatorProfile:
     """The profile itself, or the named one; an unknown name lists the choices."""
     if isinstance(name_or_profile, OperatorProfile):
