@@ -23,17 +23,22 @@ Defaults follow HIL-SERL's learner for a single arm with a learnt gripper
 ``make_sac_pixel_agent_hybrid_single_arm``): 2 critics with LayerNorm and tanh activations,
 256x256, target = min over both, no entropy backup, temperature initialised at 0.01, target
 entropy ``-|A|/2``, critic-to-actor ratio 2; the actor and the critics cover the 6 pose
-dimensions and a separate grasp critic (a DQN head over the vacuum commands {release, hold},
-double-DQN target, Polyak target network, trained with every critic step) chooses the
-vacuum by argmax. ``vacuum_head="gaussian"`` keeps the vacuum as a 7th Gaussian dimension
-(the earlier form of this baseline); ``vacuum_head="held"`` is HIL-SERL's fixed-gripper
-setup for tasks that start grasped (every action commands "hold"). Normalised observations are clipped to +-10 (QC-FQL). RLPD's variant (10 critics, target = min over 2 members
-drawn without replacement, ReLU, entropy backup, temperature 1.0) is a configuration:
-:data:`RLPD_CONFIG`. Deviations from HIL-SERL, all disclosed in ``docs/baselines.md``: the
-discount is 0.99 (HIL-SERL's examples use 0.97), the log-std is clipped to [-20, 2] (RLPD;
-HIL-SERL clips the std to [1e-5, 5]), the temperature loss uses the actor's samples on
-``obs`` (HIL-SERL's uses samples on ``next_obs``), observations are z-scored with demo
-statistics, and there is no image encoder (the flat 52-float state is the input).
+dimensions and a separate grasp critic (a DQN head over the three vacuum commands
+{release, stay, engage}, double-DQN target, Polyak target network, trained with every
+critic step on the task reward plus the toggle penalty ``grasp_penalty``) chooses the
+vacuum by argmax. ``vacuum_head="gaussian"`` keeps the vacuum as a 7th Gaussian dimension;
+``vacuum_head="held"`` is HIL-SERL's fixed-gripper setup for tasks that start grasped
+(every action commands "hold"); ``vacuum_head="binary"`` is the earlier two-way grasp
+critic over {release, hold}, kept so that policies saved with it still act. Normalised
+observations are clipped to +-10 (QC-FQL). RLPD's variant (10 critics, target = min over 2
+members drawn without replacement, ReLU, entropy backup, temperature 1.0) is a
+configuration: :data:`RLPD_CONFIG`; HIL-SERL's own protocol (no offline pretraining, its
+discount and std bounds) is the preset :data:`HILSERL_OWN`. Deviations from HIL-SERL, all
+disclosed in ``docs/baselines.md``: the discount is the paper's 0.99 (HIL-SERL's examples use
+0.97-0.98), the log-std is clipped to [-20, 2] (RLPD; HIL-SERL clips the std to [1e-5, 5]),
+the temperature loss uses the actor's samples on ``obs`` (HIL-SERL's uses samples on
+``next_obs``), observations are z-scored with demo statistics, and there is no image encoder
+(the flat 52-float state is the input).
 
 Why the losses are written here instead of ``torchrl.objectives.SACLoss`` (0.14): SACLoss
 always subtracts the entropy term in the TD target (HIL-SERL turns the backup off), takes
@@ -64,21 +69,29 @@ from window_bench.data.steplog import PROVENANCES, EpisodeLog
 from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
                                         module_state, optimizer_state, plain, with_overrides)
 from window_bench.envs.env import VACUUM_THRESHOLD
+from window_bench.installer.supervisor import FLAT_DIM, FLAT_SLICES
 
 _ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
-#: Batch keys the learner reads (``valid`` is optional and defaults to all True).
+#: Batch keys the learner reads (``valid`` is optional and defaults to all True; the
+#: optional ``vacuum_flag`` gives the vacuum flag of ``obs`` where ``obs`` is not the flat
+#: state, see :meth:`HILSERLAgent.act`).
 BATCH_KEYS = ("obs", "actions", "reward", "next_obs", "discount", "terminal")
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 #: How the last action dimension (the vacuum) is learnt; see :class:`HILSERLConfig`.
-VACUUM_HEADS = ("discrete", "gaussian", "held")
-#: The discrete head's commands (index -> executed value): release, hold. The environment
-#: engages the vacuum iff the value exceeds ``VACUUM_THRESHOLD``; a stored action maps back
-#: to the command index by the same threshold.
-VACUUM_COMMANDS = (-1.0, 1.0)
+VACUUM_HEADS = ("discrete", "gaussian", "held", "binary")
+#: The executed vacuum values: the environment engages the vacuum iff ``action[6]`` exceeds
+#: ``VACUUM_THRESHOLD`` and releases it otherwise.
+VACUUM_OFF, VACUUM_ON = -1.0, 1.0
+#: The grasp critic's commands (HIL-SERL's gripper actions -1, 0, +1, its outputs 0, 1, 2):
+#: release, stay (keep the current vacuum state), engage.
+VACUUM_COMMANDS = ("release", "stay", "engage")
+RELEASE, STAY, ENGAGE = range(len(VACUUM_COMMANDS))
+#: The ``"binary"`` head's commands, executed as ``VACUUM_OFF`` and ``VACUUM_ON``.
+BINARY_COMMANDS = ("release", "hold")
 #: Index of the vacuum flag (``robot0_vacuum``: 1 while the panel is held) in the flat state
 #: observation, which concatenates ``STATE_KEYS`` in order; and that observation's size.
-VACUUM_OBS_INDEX = 7 + 7 + 3 + 4     # after joint_pos, joint_vel, eef_pos, eef_quat
-FLAT_OBS_DIM = 52
+VACUUM_OBS_INDEX = FLAT_SLICES["robot0_vacuum"].start
+FLAT_OBS_DIM = FLAT_DIM
 
 
 # --------------------------------------------------------------------------- configuration
@@ -131,19 +144,27 @@ class HILSERLConfig:
     obs_clip : float or None
         Normalised observations are clipped to ``+-obs_clip`` (QC-FQL's 10): a state never
         seen in the demonstrations cannot drive the networks arbitrarily far. None: no clip.
-    vacuum_head : {"discrete", "gaussian", "held"}
+    vacuum_head : {"discrete", "gaussian", "held", "binary"}
         How the vacuum command (the last action dimension) is learnt. ``"discrete"``
         (HIL-SERL's ``SACAgentHybridSingleArm``): the tanh-Gaussian actor and the critic
         ensemble cover the pose dimensions only, and a separate grasp critic ``Q_g(s, .)``
-        over the vacuum commands {release, hold} is trained by double DQN and acts by argmax.
-        ``"gaussian"``: the vacuum is one more dimension of the tanh-Gaussian, engaged iff it
-        exceeds :data:`VACUUM_THRESHOLD` (this baseline before the grasp critic; plain SAC
-        for tasks without a vacuum). ``"held"`` (HIL-SERL's ``single-arm-fixed-gripper``
+        over the commands :data:`VACUUM_COMMANDS` {release, stay, engage} is trained by
+        double DQN and acts by argmax; "stay" executes the current state, read from the
+        observation's vacuum flag. A stored action is labelled by what it did to that state
+        (:func:`grasp_command_labels`). ``"gaussian"``: the vacuum is one more dimension of
+        the tanh-Gaussian, engaged iff it exceeds :data:`VACUUM_THRESHOLD` (plain SAC for
+        tasks without a vacuum). ``"held"`` (HIL-SERL's ``single-arm-fixed-gripper``
         setup, its ``GripperCloseEnv``, for insertion tasks that start with the part
         grasped): nothing learns the vacuum; the actor and the critic ensemble cover the
         pose dimensions and every action commands "hold". For setting A, whose panel starts
         held and is accepted while held; in B it would engage the cup wherever it comes
-        within reach.
+        within reach. ``"binary"``: this baseline's earlier grasp critic over
+        {release, hold}, without the toggle penalty; policies saved with it load as it.
+    grasp_penalty : float
+        Added to the grasp critic's reward (and only there: the critics learn the task
+        reward) on every step whose command changes the vacuum state, a release while held
+        or an engage while not, as HIL-SERL's ``GripperPenaltyWrapper`` marks a gripper
+        toggle. -0.02, its value for a single-arm learnt gripper. ``"discrete"`` only; <= 0.
     vacuum_epsilon : float
         Probability of a uniformly drawn vacuum command when acting stochastically
         (``act(..., deterministic=False)``); HIL-SERL's agent explores the gripper only
@@ -189,6 +210,7 @@ class HILSERLConfig:
     obs_clip: float | None = 10.0
     vacuum_head: str = "discrete"
     vacuum_epsilon: float = 0.0
+    grasp_penalty: float = -0.02
     suction_loss_terminal: bool = False
     target_range: tuple[float, float] | None = None
     offline_steps: int | None = None
@@ -269,12 +291,23 @@ class HILSERLConfig:
                 and 0.0 <= self.vacuum_epsilon <= 1.0):
             raise ValueError(f"vacuum_epsilon = {self.vacuum_epsilon!r} is not allowed: it "
                              f"must lie in [0, 1]")
+        if not (real(self.grasp_penalty) and self.grasp_penalty <= 0):
+            raise ValueError(f"grasp_penalty = {self.grasp_penalty!r} is not allowed: it must "
+                             f"be a finite number <= 0")
 
 
 #: RLPD's learner (Ball et al. 2023) in this module's terms.
 RLPD_CONFIG = HILSERLConfig(activation="relu", actor_layernorm=False, num_critics=10,
                             num_min=2, init_temperature=1.0, backup_entropy=True,
                             critic_actor_ratio=1, vacuum_head="gaussian")
+
+#: ``--agent-config`` overrides that run HIL-SERL as its authors run a single-arm task with a
+#: learnt gripper (the preset ``hilserl-own``; docs/baselines.md): no offline pretraining
+#: (the learner trains from the first online transitions on 1:1 batches), the discount of
+#: its pick-and-insert example (``usb_pickup_insertion``), its 256 x 256 networks (the
+#: ``paper`` profile's are 4 x 512) and its std clip [1e-5, 5] as log-std bounds.
+HILSERL_OWN = {"offline_steps": 0, "gamma": 0.98, "hidden": (256, 256),
+               "log_std_min": math.log(1e-5), "log_std_max": math.log(5.0)}
 
 
 # --------------------------------------------------------------------------- networks
@@ -337,20 +370,35 @@ class CriticEnsemble(nn.Module):
 class GraspCritic(nn.Module):
     """HIL-SERL's grasp critic: ``Q_g(s, c)`` for every vacuum command ``c`` at once, one
     MLP with the critics' hidden layers (HIL-SERL: 256 x 256, tanh, LayerNorm) and one
-    output per command; forward returns (B, len(VACUUM_COMMANDS))."""
+    output per command; forward returns (B, num_commands)."""
 
-    def __init__(self, obs_dim: int, cfg: HILSERLConfig):
+    def __init__(self, obs_dim: int, cfg: HILSERLConfig, num_commands: int):
         super().__init__()
-        self.net = _mlp(obs_dim, len(VACUUM_COMMANDS), cfg, cfg.critic_layernorm)
+        self.net = _mlp(obs_dim, num_commands, cfg, cfg.critic_layernorm)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.net(obs)
 
 
-def vacuum_command_index(vacuum: torch.Tensor) -> torch.Tensor:
-    """Index into :data:`VACUUM_COMMANDS` of executed vacuum values: 1 (hold) iff the value
-    exceeds ``VACUUM_THRESHOLD``, as the environment decides, else 0 (release)."""
-    return (vacuum > VACUUM_THRESHOLD).long()
+def grasp_command_labels(vacuum: torch.Tensor, held: torch.Tensor) -> torch.Tensor:
+    """The :data:`VACUUM_COMMANDS` index of executed vacuum values ``vacuum`` (B,), taken in
+    states whose vacuum was on where ``held`` (B,) is True: a value that changes the state is
+    the command that does so (engage above ``VACUUM_THRESHOLD``, release otherwise), one that
+    keeps it is "stay". HIL-SERL stores gripper commands -1, 0, +1 and labels them
+    ``round(a) + 1``; here the executed vacuum value is a level, so a command is a change."""
+    on = vacuum > VACUUM_THRESHOLD
+    labels = torch.full(on.shape, STAY, dtype=torch.long)
+    labels[on & ~held] = ENGAGE
+    labels[~on & held] = RELEASE
+    return labels
+
+
+def vacuum_values(commands: torch.Tensor, held: torch.Tensor) -> torch.Tensor:
+    """The executed vacuum values of :data:`VACUUM_COMMANDS` indices in states whose vacuum
+    is on where ``held``: release -> ``VACUUM_OFF``, engage -> ``VACUUM_ON``, stay -> the
+    value that keeps the state."""
+    on = (commands == ENGAGE) | ((commands == STAY) & held)
+    return torch.where(on, VACUUM_ON, VACUUM_OFF)
 
 
 # --------------------------------------------------------------------------- storage rules
@@ -477,7 +525,10 @@ class HILSERLAgent(Agent):
                                else float(config.target_entropy))
         self.obs_mean, self.obs_std = self._check_stats(obs_mean, obs_std)
 
-        self.discrete_vacuum = config.vacuum_head == "discrete"
+        # The grasp critic's commands ("discrete": three, "binary": two; none otherwise).
+        self.grasp_commands = {"discrete": VACUUM_COMMANDS,
+                               "binary": BINARY_COMMANDS}.get(config.vacuum_head, ())
+        self.discrete_vacuum = bool(self.grasp_commands)
         self.held_vacuum = config.vacuum_head == "held"
         if config.suction_loss_terminal and obs_dim != FLAT_OBS_DIM:
             raise ValueError(f"suction_loss_terminal = true needs the flat state observation "
@@ -496,7 +547,8 @@ class HILSERLAgent(Agent):
             torch.manual_seed(seed)
             self.actor = TanhGaussianActor(obs_dim, self.pose_dim, config)
             self.critic = CriticEnsemble(obs_dim, self.pose_dim, config)
-            self.grasp_critic = GraspCritic(obs_dim, config) if self.discrete_vacuum else None
+            self.grasp_critic = (GraspCritic(obs_dim, config, len(self.grasp_commands))
+                                 if self.discrete_vacuum else None)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.target_grasp_critic = (copy.deepcopy(self.grasp_critic).requires_grad_(False)
                                     if self.discrete_vacuum else None)
@@ -545,36 +597,43 @@ class HILSERLAgent(Agent):
         return z if clip is None else z.clamp(-clip, clip)
 
     # ------------------------------------------------------------------ acting
-    def act(self, obs, deterministic: bool = False) -> np.ndarray:
+    def act(self, obs, deterministic: bool = False, vacuum_flag=None) -> np.ndarray:
         """Action chunk(s) of length 1: (1, A) for one observation (obs_dim,), (B, 1, A) for
         a batch (B, obs_dim). ``deterministic`` returns ``tanh(mean)``; otherwise a sample
-        drawn with the agent's acting generator. float32, in [-1, 1]. With the discrete
-        vacuum head the last entry is the :data:`VACUUM_COMMANDS` value of
-        :meth:`vacuum_command` (argmax of the grasp critic; epsilon-greedy when sampling);
-        with the held vacuum it is always "hold"."""
+        drawn with the agent's acting generator. float32, in [-1, 1]. With a grasp critic
+        the last entry executes the command of :meth:`vacuum_command` (argmax of the grasp
+        critic; epsilon-greedy when sampling): ``VACUUM_OFF`` for release, ``VACUUM_ON`` for
+        engage (and the binary head's hold), and for stay the value that keeps the vacuum
+        state of the observation; with the held vacuum it is always ``VACUUM_ON``.
+
+        ``vacuum_flag``: one value per observation, 1 while the vacuum is on, for
+        observations that are not the flat state (the pixel track's); by default the flag at
+        :data:`VACUUM_OBS_INDEX` of ``obs``."""
         x = np.ascontiguousarray(obs, dtype=np.float32)
         if x.ndim not in (1, 2) or x.shape[-1] != self.obs_dim:
             raise ValueError(f"obs has shape {x.shape}; expected ({self.obs_dim},) or "
                              f"(B, {self.obs_dim})")
         with torch.no_grad():
-            o = self._normalize(torch.from_numpy(x).reshape(-1, self.obs_dim))
+            raw = torch.from_numpy(x).reshape(-1, self.obs_dim)
+            o = self._normalize(raw)
             a = self.actor.mode(o) if deterministic else self.actor.sample(o, self._act_rng)[0]
             if self.discrete_vacuum:
-                values = torch.tensor(VACUUM_COMMANDS, dtype=a.dtype)
                 cmd = self._vacuum_command(o, deterministic)
-                a = torch.cat([a, values[cmd][:, None]], dim=-1)
+                vacuum = self._executed_vacuum(cmd, raw, vacuum_flag)
+                a = torch.cat([a, vacuum[:, None].to(a.dtype)], dim=-1)
             elif self.held_vacuum:
-                a = torch.cat([a, a.new_full((a.shape[0], 1), VACUUM_COMMANDS[1])], dim=-1)
+                a = torch.cat([a, a.new_full((a.shape[0], 1), VACUUM_ON)], dim=-1)
         a = a.numpy().astype(np.float32)
         return a.reshape(1, self.action_dim) if x.ndim == 1 else a[:, None, :]
 
     def vacuum_command(self, obs, deterministic: bool = True) -> np.ndarray:
-        """Indices into :data:`VACUUM_COMMANDS` (0 release, 1 hold) for raw observations
+        """Indices into the grasp critic's commands (:data:`VACUUM_COMMANDS`: 0 release,
+        1 stay, 2 engage; the binary head's :data:`BINARY_COMMANDS`) for raw observations
         (obs_dim,) or (B, obs_dim): ``argmax_c Q_g(s, c)``, or with probability
-        ``vacuum_epsilon`` a uniform command when not ``deterministic``. Discrete head only."""
+        ``vacuum_epsilon`` a uniform command when not ``deterministic``. Grasp critic only."""
         if not self.discrete_vacuum:
-            raise ValueError("vacuum_command needs vacuum_head = 'discrete'; this agent has "
-                             f"{self.config.vacuum_head!r}")
+            raise ValueError("vacuum_command needs a grasp critic (vacuum_head 'discrete' or "
+                             f"'binary'); this agent has {self.config.vacuum_head!r}")
         x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, self.obs_dim)
         with torch.no_grad():
             return self._vacuum_command(self._normalize(x), deterministic).numpy()
@@ -585,9 +644,32 @@ class HILSERLAgent(Agent):
         if not deterministic and eps > 0:
             # Draws only when exploring, so eps = 0 leaves the acting stream as without it.
             explore = torch.rand(cmd.shape, generator=self._act_rng) < eps
-            random_cmd = torch.randint(len(VACUUM_COMMANDS), cmd.shape, generator=self._act_rng)
+            random_cmd = torch.randint(len(self.grasp_commands), cmd.shape,
+                                       generator=self._act_rng)
             cmd = torch.where(explore, random_cmd, cmd)
         return cmd
+
+    def _executed_vacuum(self, cmd: torch.Tensor, obs: torch.Tensor,
+                         vacuum_flag=None) -> torch.Tensor:
+        """The executed vacuum values (B,) of grasp-critic commands at raw observations."""
+        if self.config.vacuum_head == "binary":
+            return torch.where(cmd == 1, VACUUM_ON, VACUUM_OFF)
+        return vacuum_values(cmd, self._vacuum_held(obs, vacuum_flag))
+
+    def _vacuum_held(self, obs: torch.Tensor, vacuum_flag=None) -> torch.Tensor:
+        """(B,) bool, the vacuum is on at each raw observation (B, obs_dim): from
+        ``vacuum_flag`` when given, else from the flag of the flat state observation."""
+        if vacuum_flag is not None:
+            flag = torch.as_tensor(vacuum_flag, dtype=torch.float32).reshape(-1)
+            if flag.shape[0] != obs.shape[0]:
+                raise ValueError(f"vacuum_flag has {flag.shape[0]} values for "
+                                 f"{obs.shape[0]} observations")
+            return flag > 0.5
+        if self.obs_dim != FLAT_OBS_DIM:
+            raise ValueError(f"vacuum_head = 'discrete' reads the vacuum flag of the flat state "
+                             f"observation (obs_dim {FLAT_OBS_DIM}, index {VACUUM_OBS_INDEX}); "
+                             f"this agent has obs_dim = {self.obs_dim}: pass vacuum_flag")
+        return obs[:, VACUUM_OBS_INDEX] > 0.5
 
     # ------------------------------------------------------------------ learning
     def _prepare(self, batch: TensorDict) -> dict[str, torch.Tensor]:
@@ -621,12 +703,26 @@ class HILSERLAgent(Agent):
         if self.config.suction_loss_terminal:
             lost = (obs[:, VACUUM_OBS_INDEX] > 0.5) & (next_obs[:, VACUUM_OBS_INDEX] < 0.5)
             terminal = torch.maximum(terminal, lost.to(torch.float32))
-        return {"obs": self._normalize(obs), "next_obs": self._normalize(next_obs),
-                "actions": actions[:, :self.pose_dim],
-                "vacuum_cmd": vacuum_command_index(actions[:, -1]), "discount": discount,
-                "reward": batch["reward"].to(torch.float32).reshape(B),
-                "terminal": terminal,
-                "valid": valid.to(torch.float32).reshape(B)}
+        reward = batch["reward"].to(torch.float32).reshape(B)
+        prepared = {"obs": self._normalize(obs), "next_obs": self._normalize(next_obs),
+                    "actions": actions[:, :self.pose_dim], "discount": discount,
+                    "reward": reward, "terminal": terminal,
+                    "valid": valid.to(torch.float32).reshape(B)}
+        if self.discrete_vacuum:
+            flag = batch["vacuum_flag"] if "vacuum_flag" in batch.keys() else None
+            prepared["vacuum_cmd"], prepared["grasp_reward"] = self._grasp_labels(
+                actions[:, -1], obs, reward, flag)
+        return prepared
+
+    def _grasp_labels(self, vacuum: torch.Tensor, obs: torch.Tensor, reward: torch.Tensor,
+                      vacuum_flag=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The grasp critic's command labels (B,) of executed vacuum values and its reward:
+        the task reward plus ``grasp_penalty`` where the command changed the vacuum state
+        (HIL-SERL adds its ``grasp_penalty`` to the grasp critic's reward only)."""
+        if self.config.vacuum_head == "binary":
+            return (vacuum > VACUUM_THRESHOLD).long(), reward
+        labels = grasp_command_labels(vacuum, self._vacuum_held(obs, vacuum_flag))
+        return labels, reward + self.config.grasp_penalty * (labels != STAY).to(reward.dtype)
 
     def td_target(self, batch: TensorDict) -> torch.Tensor:
         """The TD target ``y`` (B,) of one batch, with the current target critics:
@@ -655,19 +751,21 @@ class HILSERLAgent(Agent):
 
     def grasp_td_target(self, batch: TensorDict) -> torch.Tensor:
         """The grasp critic's double-DQN target ``y_g`` (B,), with the current networks:
-        ``y_g = r + discount * (1 - terminal) * Qbar_g(s', argmax_c Q_g(s', c))``: the online
-        grasp critic picks the next command, the target grasp critic values it (HIL-SERL's
-        ``grasp_critic_loss_fn``; its gripper-toggle penalty is not part of this task's
-        reward). Discrete head only."""
+        ``y_g = r_g + discount * (1 - terminal) * Qbar_g(s', argmax_c Q_g(s', c))``: the
+        online grasp critic picks the next command, the target grasp critic values it, and
+        ``r_g`` is the task reward plus ``grasp_penalty`` on the rows whose command changed
+        the vacuum state (HIL-SERL's ``grasp_critic_loss_fn``). Grasp critic only."""
         if not self.discrete_vacuum:
-            raise ValueError("grasp_td_target needs vacuum_head = 'discrete'")
+            raise ValueError("grasp_td_target needs a grasp critic (vacuum_head 'discrete' or "
+                             f"'binary'); this agent has {self.config.vacuum_head!r}")
         return self._grasp_td_target(self._prepare(batch))
 
     @torch.no_grad()
     def _grasp_td_target(self, b: dict[str, torch.Tensor]) -> torch.Tensor:
         best = self.grasp_critic(b["next_obs"]).argmax(dim=-1, keepdim=True)
         next_q = self.target_grasp_critic(b["next_obs"]).gather(-1, best).squeeze(-1)
-        return self._clip_target(b["reward"] + b["discount"] * (1.0 - b["terminal"]) * next_q)
+        return self._clip_target(b["grasp_reward"]
+                                 + b["discount"] * (1.0 - b["terminal"]) * next_q)
 
     def _valid_mean(self, per_row: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         return (per_row * valid).sum() / valid.sum().clamp(min=1.0)
@@ -831,7 +929,14 @@ class HILSERLAgent(Agent):
 
 def _state_config(state: dict) -> dict:
     """The config of a :meth:`HILSERLAgent.state_dict`; states saved before the grasp critic
-    and the observation clip were added are what they were: Gaussian vacuum, no clip."""
-    return {"vacuum_head": "gaussian", "obs_clip": None, "vacuum_epsilon": 0.0,
-            "offline_steps": None, "suction_loss_terminal": False, "target_range": None,
-            **state["config"]}
+    and the observation clip were added are what they were: Gaussian vacuum, no clip; and
+    those saved before the three-way grasp critic (no ``grasp_penalty``) had no toggle
+    penalty, and their grasp critic, if any, is the two-way one (``"binary"``)."""
+    config = {"vacuum_head": "gaussian", "obs_clip": None, "vacuum_epsilon": 0.0,
+              "offline_steps": None, "suction_loss_terminal": False, "target_range": None,
+              **state["config"]}
+    if "grasp_penalty" not in config:
+        config["grasp_penalty"] = 0.0
+        if config["vacuum_head"] == "discrete":
+            config["vacuum_head"] = "binary"
+    return config

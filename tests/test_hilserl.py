@@ -13,9 +13,11 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from baselines.hilserl import (BATCH_KEYS, RLPD_CONFIG, VACUUM_COMMANDS, HILSERLAgent,
-                               HILSERLConfig,
-                               hilserl_buffers_for, obs_normalizer, symmetric_sampler)
+from baselines.hilserl import (BATCH_KEYS, ENGAGE, HILSERL_OWN, RELEASE, RLPD_CONFIG, STAY,
+                               VACUUM_COMMANDS, VACUUM_OBS_INDEX, VACUUM_OFF, VACUUM_ON,
+                               HILSERLAgent, HILSERLConfig, grasp_command_labels,
+                               hilserl_buffers_for, obs_normalizer, symmetric_sampler,
+                               vacuum_values)
 from window_bench.data.chunks import chunk_transitions
 from window_bench.harness.agent import takeover_segments
 from window_bench.installer.scripted import ScriptedInstaller
@@ -96,6 +98,8 @@ def params(module):
     ({"log_std_min": 2.0}, "log_std_min"),
     ({"vacuum_head": "bernoulli"}, "vacuum_head"),
     ({"vacuum_epsilon": 1.5}, "vacuum_epsilon"),
+    ({"grasp_penalty": 0.02}, "grasp_penalty"),
+    ({"grasp_penalty": float("nan")}, "grasp_penalty"),
     ({"obs_clip": 0.0}, "obs_clip"),
     ({"offline_steps": -1}, "offline_steps"),
     ({"offline_steps": 1.5}, "offline_steps"),
@@ -273,12 +277,11 @@ def test_td_target_of_real_demo_chunks_never_exceeds_one(demo_td):
 def test_suction_loss_terminal_ends_the_targets_where_the_panel_is_lost(env):
     """Row 0 loses the panel (vacuum flag 1 -> 0), row 1 keeps it: with the option the lost
     row's critic and grasp targets are the reward alone, without it both bootstrap."""
-    from baselines.hilserl import VACUUM_OBS_INDEX
-
     obs, _ = env.reset(seed=0)       # setting A starts with the panel held
     assert obs.shape == (OBS_DIM,) and obs[VACUUM_OBS_INDEX] == 1.0
     batch = _two_rows([0.0, 0.0], [False, False])
     batch["obs"][:, VACUUM_OBS_INDEX] = 1.0
+    batch["actions"][:, 0, 6] = VACUUM_ON      # kept on by command (stay), lost by the grip
     batch["next_obs"][:, VACUUM_OBS_INDEX] = torch.tensor([0.0, 1.0])
     targets = {}
     for flag in (False, True):
@@ -365,7 +368,8 @@ def _constant_outputs(net, values):
 
 def test_discrete_head_is_the_default_and_splits_the_action():
     """HIL-SERL's hybrid agent: Gaussian actor and critic ensemble over the 6 pose
-    dimensions, a grasp critic over {release, hold}; 'gaussian' keeps all 7 in the actor."""
+    dimensions, a grasp critic over {release, stay, engage}; 'gaussian' keeps all 7 in the
+    actor."""
     agent = HILSERLAgent(OBS_DIM, config=SMALL)
     assert SMALL.vacuum_head == "discrete" and SMALL.obs_clip == 10.0
     first = lambda net: [m for m in net.modules() if isinstance(m, torch.nn.Linear)][0]  # noqa: E731
@@ -393,7 +397,7 @@ def test_held_vacuum_is_hilserl_fixed_gripper(demo, demo_td):
     obs = demo.observations[:50]
     for deterministic in (True, False):
         a = agent.act(obs, deterministic=deterministic)
-        assert a.shape == (50, 1, 7) and np.all(a[:, 0, 6] == VACUUM_COMMANDS[1])
+        assert a.shape == (50, 1, 7) and np.all(a[:, 0, 6] == VACUUM_ON)
         assert np.all(np.abs(a[:, 0, :6]) < 1.0) and len(np.unique(a[:, 0, 0])) > 1
     info = agent.update(demo_td[:64])
     assert "grasp_critic_loss" not in info and np.isfinite(info["critic_loss"])
@@ -413,56 +417,184 @@ def test_grasp_td_target_is_double_dqn():
     """y_g = r + gamma (1 - terminal) Qbar_g(s', argmax_c Q_g(s', c)): the online grasp
     critic chooses the command, the target grasp critic values it."""
     agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(8,), batch_size=2))
-    batch = _two_rows([0.5, 1.0], [False, True])
-    _constant_outputs(agent.target_grasp_critic, [5.0, 2.0])
-    _constant_outputs(agent.grasp_critic, [0.0, 1.0])        # online argmax: hold
-    torch.testing.assert_close(agent.grasp_td_target(batch),
-                               torch.tensor([0.5 + GAMMA * 2.0, 1.0]))
-    _constant_outputs(agent.grasp_critic, [1.0, 0.0])        # online argmax: release
-    torch.testing.assert_close(agent.grasp_td_target(batch),
-                               torch.tensor([0.5 + GAMMA * 5.0, 1.0]))
+    batch = _two_rows([0.5, 1.0], [False, True])     # vacuum off and kept off: no toggle
+    _constant_outputs(agent.target_grasp_critic, [5.0, 2.0, 4.0])
+    for online, value in (([0.0, 1.0, 0.0], 2.0), ([1.0, 0.0, 0.0], 5.0),
+                          ([0.0, 0.0, 1.0], 4.0)):   # online argmax: stay, release, engage
+        _constant_outputs(agent.grasp_critic, online)
+        torch.testing.assert_close(agent.grasp_td_target(batch),
+                                   torch.tensor([0.5 + GAMMA * value, 1.0]))
+
+
+def test_toggle_penalty_enters_the_grasp_target_only_where_the_state_changes():
+    """Rows: held + on (stay), held + off (release), free + on (engage), free + off (stay).
+    The grasp critic's reward carries grasp_penalty on the two changes only; the critics'
+    targets keep the task reward; grasp_penalty = 0 removes it."""
+    batch = TensorDict({"obs": torch.zeros(4, OBS_DIM), "next_obs": torch.ones(4, OBS_DIM),
+                        "actions": torch.zeros(4, 1, 7), "reward": torch.full((4,), 0.5),
+                        "discount": torch.full((4,), GAMMA),
+                        "terminal": torch.zeros(4, dtype=bool)}, batch_size=[4])
+    batch["obs"][:, VACUUM_OBS_INDEX] = torch.tensor([1.0, 1.0, 0.0, 0.0])
+    batch["actions"][:, 0, 6] = torch.tensor([VACUUM_ON, VACUUM_OFF, VACUUM_ON, VACUUM_OFF])
+    assert HILSERLConfig().grasp_penalty == -0.02     # HIL-SERL's single-arm learnt gripper
+    for penalty in (-0.02, 0.0):
+        agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(8,), batch_size=2,
+                                                           grasp_penalty=penalty))
+        _constant_target_critics(agent, [2.0, 2.0], grasp=3.0)
+        toggled = torch.tensor([0.0, 1.0, 1.0, 0.0])
+        torch.testing.assert_close(agent.grasp_td_target(batch),
+                                   0.5 + penalty * toggled + GAMMA * 3.0)
+        torch.testing.assert_close(agent.td_target(batch), torch.full((4,), 0.5 + GAMMA * 2.0))
+        np.testing.assert_array_equal(agent._prepare(batch)["vacuum_cmd"],
+                                      [STAY, RELEASE, ENGAGE, STAY])
+
+
+def test_executed_vacuum_values_map_to_the_grasp_commands():
+    """A demonstration's or a takeover's continuous vacuum value is labelled by what it did:
+    a change of state is release / engage, no change is stay; and each command executes a
+    value that the same labelling gives back where it changes or keeps the state."""
+    vacuum = torch.tensor([1.0, -1.0, 1.0, -1.0, 0.6, 0.4, 0.5, 0.95])
+    held = torch.tensor([True, True, False, False, False, True, True, True])
+    np.testing.assert_array_equal(grasp_command_labels(vacuum, held),
+                                  [STAY, RELEASE, ENGAGE, STAY, ENGAGE, RELEASE, RELEASE, STAY])
+    commands = torch.tensor([RELEASE, STAY, ENGAGE] * 2)
+    state = torch.tensor([True] * 3 + [False] * 3)
+    executed = vacuum_values(commands, state)
+    np.testing.assert_array_equal(executed, [VACUUM_OFF, VACUUM_ON, VACUUM_ON,
+                                             VACUUM_OFF, VACUUM_OFF, VACUUM_ON])
+    np.testing.assert_array_equal(grasp_command_labels(executed, state),
+                                  [RELEASE, STAY, STAY, STAY, STAY, ENGAGE])
+
+
+def test_stay_keeps_the_vacuum_state_in_the_environment(env):
+    """Setting A starts held: "stay" executes vacuum on and the panel stays held; after a
+    release, "stay" executes vacuum off and it stays free."""
+    agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(8,), batch_size=2))
+    obs, _ = env.reset(seed=0)
+    assert obs[VACUUM_OBS_INDEX] == 1.0
+    for command, executed, flag in ((STAY, VACUUM_ON, 1.0), (RELEASE, VACUUM_OFF, 0.0),
+                                    (STAY, VACUUM_OFF, 0.0)):
+        _constant_outputs(agent.grasp_critic, np.eye(3)[command])
+        assert agent.vacuum_command(obs) == command
+        a = agent.act(obs, deterministic=True)[0]
+        assert a[6] == executed
+        a[:6] = 0.0
+        obs, *_ = env.step(a)
+        assert obs[VACUUM_OBS_INDEX] == flag
+    # Where the observation is not the flat state, the flag is passed along.
+    free = np.array(obs)
+    free[VACUUM_OBS_INDEX] = 1.0
+    assert agent.act(free, deterministic=True, vacuum_flag=[0.0])[0, 6] == VACUUM_OFF
+
+
+def test_pixel_track_stay_reads_the_raw_vacuum_flag():
+    """On the pixel track the learner sees embeddings: "stay" reads the raw observation's
+    vacuum flag (the last proprioceptive value)."""
+    from window_bench.pixels.agent import VACUUM_INDEX, PixelHILSERL
+    from window_bench.pixels.encoder import OBS_DIM as PIXEL_OBS_DIM
+
+    agent = PixelHILSERL(HILSERLConfig(hidden=(8,), batch_size=2))
+    _constant_outputs(agent.agent.grasp_critic, np.eye(3)[STAY])
+    obs = np.zeros((2, PIXEL_OBS_DIM), np.float32)
+    obs[:, VACUUM_INDEX] = [1.0, 0.0]
+    np.testing.assert_array_equal(agent.act(obs, deterministic=True)[:, 0, 6],
+                                  [VACUUM_ON, VACUUM_OFF])
 
 
 def test_grasp_critic_trains_the_executed_command_only(demo_td):
-    """The grasp loss regresses Q_g(s, c) of the executed command c (hold in the demo, value
-    1.0 > 0.5) to its target; the release output gets no gradient from the loss."""
+    """The grasp loss regresses Q_g(s, c) of the executed command c (the demo holds the
+    panel it holds: stay) to its target; release and engage get no gradient from it."""
     cfg = HILSERLConfig(hidden=(16,), batch_size=32, critic_actor_ratio=1, tau=1.0)
     agent = HILSERLAgent(OBS_DIM, config=cfg)
     batch = demo_td[:32]
     assert torch.all(batch["actions"][:, 0, 6] > 0.5)
     b = agent._prepare(batch)
+    assert torch.all(b["vacuum_cmd"] == STAY)
     y = agent._grasp_td_target(b)
     with torch.no_grad():
         q = agent.grasp_critic(b["obs"])
-    expected = float(((q[:, 1] - y) ** 2).mean())
+    expected = float(((q[:, STAY] - y) ** 2).mean())
     info = agent.update(batch)
     assert info["grasp_critic_loss"] == pytest.approx(expected, rel=1e-5)
     last = [m for m in agent.grasp_critic.modules() if isinstance(m, torch.nn.Linear)][-1]
     before = HILSERLAgent(OBS_DIM, config=cfg)   # same seed: the initial weights
     last0 = [m for m in before.grasp_critic.modules() if isinstance(m, torch.nn.Linear)][-1]
-    assert torch.equal(last.weight[0], last0.weight[0]) and torch.equal(last.bias[0], last0.bias[0])
-    assert not torch.equal(last.weight[1], last0.weight[1])
+    for c in (RELEASE, ENGAGE):
+        assert torch.equal(last.weight[c], last0.weight[c])
+        assert torch.equal(last.bias[c], last0.bias[c])
+    assert not torch.equal(last.weight[STAY], last0.weight[STAY])
     # tau = 1: the target grasp critic is a copy after the step (Polyak after every step)
     for p_, t_ in zip(agent.grasp_critic.parameters(), agent.target_grasp_critic.parameters()):
         torch.testing.assert_close(p_, t_)
 
 
 def test_vacuum_action_is_argmax_and_epsilon_greedy_when_sampling(demo):
-    obs = np.repeat(demo.observations[:1], 2000, axis=0)
+    obs = np.repeat(demo.observations[:1], 2000, axis=0)      # the panel held
     agent = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(16,), batch_size=32,
                                                        vacuum_epsilon=0.3), seed=1)
-    _constant_outputs(agent.grasp_critic, [1.0, 0.0])
-    assert np.all(agent.act(obs, deterministic=True)[:, 0, 6] == -1.0)    # release
-    _constant_outputs(agent.grasp_critic, [0.0, 1.0])
-    assert np.all(agent.act(obs, deterministic=True)[:, 0, 6] == 1.0)     # hold
-    np.testing.assert_array_equal(agent.vacuum_command(obs[:3]), [1, 1, 1])
+    _constant_outputs(agent.grasp_critic, [1.0, 0.0, 0.0])
+    assert np.all(agent.act(obs, deterministic=True)[:, 0, 6] == VACUUM_OFF)    # release
+    _constant_outputs(agent.grasp_critic, [0.0, 1.0, 0.0])
+    assert np.all(agent.act(obs, deterministic=True)[:, 0, 6] == VACUUM_ON)     # stay
+    np.testing.assert_array_equal(agent.vacuum_command(obs[:3]), [STAY] * 3)
     sampled = agent.act(obs)[:, 0, 6]
-    assert set(np.unique(sampled)) == {-1.0, 1.0}
-    # epsilon 0.3 of uniform commands over 2: release with probability 0.15
-    assert 0.11 < np.mean(sampled == -1.0) < 0.19
+    assert set(np.unique(sampled)) == {VACUUM_OFF, VACUUM_ON}
+    # epsilon 0.3 of uniform commands over 3: release with probability 0.1
+    assert 0.07 < np.mean(sampled == VACUUM_OFF) < 0.13
     greedy = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(16,), batch_size=32), seed=1)
-    _constant_outputs(greedy.grasp_critic, [0.0, 1.0])
-    assert np.all(greedy.act(obs)[:, 0, 6] == 1.0)   # HIL-SERL's default: no epsilon
+    _constant_outputs(greedy.grasp_critic, [0.0, 1.0, 0.0])
+    assert np.all(greedy.act(obs)[:, 0, 6] == VACUUM_ON)   # HIL-SERL's default: no epsilon
+
+
+def test_policies_saved_with_the_two_way_grasp_critic_still_act(demo):
+    """A policy saved before the three-way head (config without grasp_penalty, vacuum_head
+    'discrete', two grasp-critic outputs) loads as vacuum_head='binary' and acts as before:
+    its argmax over {release, hold}, executed as off / on, whatever the vacuum state."""
+    old = HILSERLAgent(OBS_DIM, config=HILSERLConfig(hidden=(16,), batch_size=32,
+                                                     vacuum_head="binary"), seed=2)
+    _constant_outputs(old.grasp_critic, [1.0, 0.0])
+    policy = old.policy_state_dict()
+    del policy["config"]["grasp_penalty"]
+    policy["config"]["vacuum_head"] = "discrete"
+    restored = HILSERLAgent.from_policy_state_dict(policy)
+    assert restored.config.vacuum_head == "binary" and restored.config.grasp_penalty == 0.0
+    obs = demo.observations[:20]
+    np.testing.assert_array_equal(restored.act(obs, deterministic=True),
+                                  old.act(obs, deterministic=True))
+    assert np.all(restored.act(obs, deterministic=True)[:, 0, 6] == VACUUM_OFF)
+    state = old.state_dict()
+    del state["config"]["grasp_penalty"]
+    state["config"]["vacuum_head"] = "discrete"
+    resumed = HILSERLAgent.from_state_dict(state)
+    assert resumed.grasp_critic(torch.zeros(1, OBS_DIM)).shape == (1, 2)
+    assert "grasp_critic_loss" in resumed.update(to_td(chunk_transitions(demo, 1, GAMMA))[:32])
+
+
+def test_hilserl_own_preset_loads_and_validates():
+    """The preset ``hilserl-own``: HIL-SERL's own protocol and settings as --agent-config
+    overrides, valid for the agent on every profile, the rest of the config unchanged."""
+    import json
+
+    import window_bench  # noqa: F401  (fills the registries)
+    from window_bench.harness.agent import check_agent_config, parse_overrides
+    from window_bench.harness.methods import PROFILES, get_preset
+
+    preset = get_preset("hilserl-own")
+    assert preset is HILSERL_OWN
+    # As a command line would give them: --agent-config KEY=VALUE with JSON values.
+    typed = parse_overrides([f"{k}={json.dumps(v)}" for k, v in preset.items()])
+    for profile in PROFILES.values():
+        check_agent_config(HILSERLAgent, 1, profile, typed)
+        cfg = HILSERLAgent.make_config(1, profile, typed)
+        assert (cfg.offline_steps, cfg.gamma, cfg.hidden) == (0, 0.98, (256, 256))
+        np.testing.assert_allclose(np.exp([cfg.log_std_min, cfg.log_std_max]), [1e-5, 5.0])
+        default = HILSERLAgent.make_config(1, profile, {})
+        changed = {k for k in vars(default) if getattr(cfg, k) != getattr(default, k)}
+        assert changed <= set(preset), changed
+    agent = HILSERLAgent(OBS_DIM, config=HILSERLAgent.make_config(1, PROFILES["cpu"], typed))
+    assert agent.offline_steps == 0 and agent.config.vacuum_head == "discrete"
+    with pytest.raises(ValueError, match="unknown agent config field"):
+        HILSERLAgent.make_config(1, PROFILES["cpu"], {**typed, "discount": 0.98})
 
 
 def test_normalised_observations_are_clipped():
@@ -483,7 +615,7 @@ def test_states_saved_before_the_grasp_critic_load_as_gaussian():
                                                      vacuum_head="gaussian", obs_clip=None))
     state = old.state_dict()
     for key in ("vacuum_head", "obs_clip", "vacuum_epsilon", "offline_steps",
-                "suction_loss_terminal", "target_range"):
+                "suction_loss_terminal", "target_range", "grasp_penalty"):
         del state["config"][key]
     restored = HILSERLAgent.from_state_dict(state)
     assert restored.config.vacuum_head == "gaussian" and restored.config.obs_clip is None

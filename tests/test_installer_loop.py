@@ -273,6 +273,38 @@ def test_grasp_settle_holds_still_before_the_lift():
     e.close()
 
 
+def test_by_eye_placement_is_corrected_before_the_insertion(env):
+    """With a by-eye placement the installer first stops in front of the opening off by the
+    coarse error, looks, corrects to within its close-look error, and seats; without one the
+    demonstration is the same as before (the coarse draw comes after the close look's)."""
+    e = env.unwrapped
+    plain = ScriptedInstaller(env, 1.0, 0.5, seed=2)
+    coarse = ScriptedInstaller(env, 1.0, 0.5, seed=2, coarse_align_error_mm=6.0,
+                               coarse_align_error_deg=1.5)
+    assert np.array_equal(plain.err_pos, coarse.err_pos)
+    assert np.array_equal(plain.err_rot, coarse.err_rot)
+    lateral = np.abs(coarse.coarse_pos[[0, 2]]).max()
+    assert 0.003 < lateral <= 0.006
+    env.reset(seed=2)
+    at_look, term = None, False
+    for _ in range(600):
+        _, _, term, trunc, _ = env.step(coarse.act())
+        if coarse.phase == "look" and at_look is None:
+            p, _ = e.panel_pose()
+            at_look = p - e.seated_pose[0]
+        if term or trunc:
+            break
+    phases = [p for _, p in coarse.events]
+    assert phases.index("align") < phases.index("look") < phases.index("insert"), phases
+    # placed by eye: off by about the coarse error, then corrected
+    assert np.abs(at_look[[0, 2]] - coarse.coarse_pos[[0, 2]]).max() < 0.0015
+    assert term   # accepted: the env terminates on acceptance
+    with pytest.raises(ValueError, match="alignment errors must be >= 0"):
+        ScriptedInstaller(env, coarse_align_error_mm=-1.0)
+    with pytest.raises(ValueError, match=r"coarse_align_error_mm = 21.0 is outside \[0.0, 20.0\]"):
+        OperatorProfile("x", coarse_align_error_mm=21.0)
+
+
 def test_safety_off_and_coverage(env):
     sup = InstallerSupervisor(_profile(), safety=False)
     assert _feed(env, sup, [_obs(vacuum=1.0)] * 2 + [_obs(vacuum=0.0)] * 3) == [None] * 5

@@ -477,6 +477,38 @@ def test_observation_normaliser():
         QCFQLAgent(OBS, A, tiny(), obs_std=np.ones(3))
 
 
+def test_fine_pose_features_resolve_millimetres_near_the_seat():
+    """With ``fine_pose_mm`` the networks see tanh(window_pos_rel / scale) and
+    tanh(window_rot_rel / scale) after the z-score: 3 mm and 1 mm differ by 0.2 at 10 mm
+    where their z-scores (std 0.24 m) differ by 0.008; far from the seat they saturate."""
+    from window_bench.installer.supervisor import FLAT_DIM, FLAT_SLICES
+
+    std = np.full(FLAT_DIM, 0.24)
+    agent = QCFQLAgent(FLAT_DIM, A, tiny(fine_pose_mm=10.0, fine_pose_deg=2.0), obs_std=std)
+    obs = torch.zeros(3, FLAT_DIM)
+    pos, rot = FLAT_SLICES["window_pos_rel"], FLAT_SLICES["window_rot_rel"]
+    obs[0, pos] = torch.tensor([0.003, -0.12, -0.001])
+    obs[1, pos] = torch.tensor([0.001, -0.12, -0.003])
+    obs[2, pos] = torch.tensor([0.5, -1.0, 0.3])
+    obs[0, rot.start] = float(np.deg2rad(1.0))
+    out = agent.normalize(obs)
+    assert out.shape == (3, FLAT_DIM + 6)
+    torch.testing.assert_close(out[:, :FLAT_DIM], obs / 0.24)
+    fine = out[:, FLAT_DIM:]
+    torch.testing.assert_close(fine[0, :3], torch.tanh(torch.tensor([0.3, -12.0, -0.1])))
+    assert abs(float(fine[0, 0] - fine[1, 0])) > 0.19
+    assert float(fine[0, 3]) == pytest.approx(np.tanh(0.5), abs=1e-6)
+    assert torch.all(fine[2, :3].abs() > 0.99)
+    # acts, saves and restores with the features; refuses an observation they do not fit
+    restored = QCFQLAgent.from_policy_state_dict(agent.policy_state_dict())
+    np.testing.assert_array_equal(agent.act(obs[0].numpy(), deterministic=True),
+                                  restored.act(obs[0].numpy(), deterministic=True))
+    with pytest.raises(ValueError, match=f"needs the flat state observation \\({FLAT_DIM}"):
+        QCFQLAgent(OBS, A, tiny(fine_pose_mm=10.0))
+    with pytest.raises(ValueError, match="fine_pose_deg"):
+        tiny(fine_pose_mm=10.0, fine_pose_deg=0.0)
+
+
 def test_state_dict_round_trip_is_bit_identical():
     cfg = tiny(h=2, hidden=(16, 16))
     agent = QCFQLAgent(OBS, A, cfg, seed=1, obs_mean=np.array([0.1, 0.2]),

@@ -36,13 +36,18 @@ def _rot(axis, angle):
 
 
 # ----------------------------------------------------------------------------- registry
+def _episode_steps(env_id):
+    return 200 if env_id == "WindowInstall-Insert-v0" else 600
+
+
 def test_ids_registered():
-    assert len(IDS) == 8
+    assert len(IDS) == 9
     assert set(IDS) == {f"WindowInstall-{e}{s}-v0" for e in "AB"
-                        for s in ("", "-Panel40x40", "-Panel60x60", "-Panel60x40")}
+                        for s in ("", "-Panel40x40", "-Panel60x60", "-Panel60x40")} \
+        | {"WindowInstall-Insert-v0"}
     for env_id in IDS:
         assert env_id in gym.registry
-        assert gym.spec(env_id).max_episode_steps == 600
+        assert gym.spec(env_id).max_episode_steps == _episode_steps(env_id)
 
 
 @pytest.mark.parametrize("env_id", IDS)
@@ -51,11 +56,11 @@ def test_model_data_types_and_panel_size(env_id, make_env):
     u = env.unwrapped
     assert isinstance(u.model, mujoco.MjModel)
     assert isinstance(u.data, mujoco.MjData)
-    assert env.spec.max_episode_steps == 600
+    assert env.spec.max_episode_steps == u.max_episode_steps == _episode_steps(env_id)
     # The id's footprint reaches the compiled model (geom half-sizes) and the opening.
     w, h = gym.spec(env_id).kwargs["panel_width"], gym.spec(env_id).kwargs["panel_height"]
     assert np.allclose(u.model.geom_size[u.scene.panel_geom], [w / 2, h / 2, S.PANEL_THICKNESS / 2])
-    assert u.cfg.experiment == env_id.split("-")[1][0]
+    assert u.cfg.experiment == env_id.split("-")[1]
     ow, oh = u.cfg.opening
     assert ow - w == pytest.approx(0.004) and oh - h == pytest.approx(0.004)
 
@@ -186,14 +191,17 @@ def test_reset_randomization_within_table9(env_id, make_env):
         np.testing.assert_array_equal(m.geom_solref[:, 0], r["solref_timeconst"])
 
         pos, mat = u.panel_pose()
-        if exp == "A":
+        if exp in ("A", "Insert"):
             assert {"panel_dx", "panel_dy", "panel_dz", "panel_roll_deg", "panel_pitch_deg",
                     "panel_yaw_deg"} <= r.keys()
-            for k in ("panel_dx", "panel_dy", "panel_dz"):
+            for k in ("panel_dx", "panel_dz"):
                 assert abs(r[k]) <= 0.005, (k, r[k])
+            # Insert: 0-3 cm further out than the pre-insertion pose, along the wall normal.
+            assert (abs(r["panel_dy"]) <= 0.005) if exp == "A" else (0 <= r["panel_dy"] <= 0.03)
             for k in ("panel_roll_deg", "panel_pitch_deg", "panel_yaw_deg"):
                 assert abs(r[k]) <= 2.0, (k, r[k])
-            c0, R0 = S.rack_panel_pose(u.cfg)
+            c0, R0 = S.rack_panel_pose(u.cfg) if exp == "A" else \
+                (u.cfg.seated_center + S.WALL_NORMAL * S.PREINSERT_OFFSET, S.SEATED_PANEL_MAT)
             np.testing.assert_allclose(pos, c0 + [r["panel_dx"], r["panel_dy"], r["panel_dz"]], atol=1e-9)
             R = R0 @ _rot(0, np.deg2rad(r["panel_roll_deg"])) @ _rot(1, np.deg2rad(r["panel_pitch_deg"])) \
                 @ _rot(2, np.deg2rad(r["panel_yaw_deg"]))
@@ -249,7 +257,7 @@ def test_state_observation_layout(env_id, make_env):
     np.testing.assert_allclose(obs["robot0_eef_pos"], u.tcp_pose()[0], atol=1e-6)
     np.testing.assert_allclose(obs["window_pos_rel"], u.panel_pose()[0] - u.seated_pose[0], atol=1e-6)
     np.testing.assert_allclose(np.linalg.norm(obs["robot0_eef_quat"]), 1.0, atol=1e-6)
-    assert obs["robot0_vacuum"][0] == (1.0 if u.cfg.experiment == "A" else 0.0)
+    assert obs["robot0_vacuum"][0] == (0.0 if u.cfg.experiment == "B" else 1.0)
 
 
 @pytest.mark.parametrize("env_id", IDS)
@@ -308,7 +316,7 @@ def test_render_rgb_array(make_env):
     ({"panel_height": 0.2}, "panel_height=0.2 is outside the supported range [0.3, 0.6]"),
     ({"clearance": 0.0}, "clearance=0.0 is outside the supported range [0.0005, 0.02]"),
     ({"panel_mass": 9.0}, "panel_mass=9.0 is outside [0.2, 5.0] kg"),
-    ({"experiment": "C"}, "experiment must be 'A' or 'B', got 'C'"),
+    ({"experiment": "C"}, "experiment must be one of 'A', 'B', 'Insert', got 'C'"),
     ({"obs_mode": "rgb"}, "obs_mode='rgb'"),
     ({"render_mode": "human"}, "render_mode='human'"),
     ({"image_size": 8}, "image_size=8 is outside [16, 512]"),

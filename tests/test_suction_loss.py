@@ -57,12 +57,13 @@ def test_summary_counts_releases_and_breaks():
 
 
 def _vacuum_policy(prefer: str) -> dict:
-    """A small HIL-SERL policy whose grasp critic always prefers ``prefer`` (release/hold)."""
+    """A small HIL-SERL policy whose grasp critic always prefers ``prefer`` (release/hold:
+    the commands release and engage of its three, release, stay, engage)."""
     agent = HILSERLAgent(52, config=HILSERLConfig(hidden=(16,), batch_size=32))
     with torch.no_grad():
         last = [m for m in agent.grasp_critic.modules() if isinstance(m, torch.nn.Linear)][-1]
         last.weight.zero_()
-        last.bias.copy_(torch.tensor([1.0, 0.0] if prefer == "release" else [0.0, 1.0]))
+        last.bias.copy_(torch.tensor([1.0, 0.0, 0.0] if prefer == "release" else [0.0, 0.0, 1.0]))
     return agent.policy_state_dict()
 
 

@@ -32,17 +32,30 @@ __version__ = "0.1.0"
 OOD_PANELS = {"Panel40x40": (0.4, 0.4), "Panel60x60": (0.6, 0.6), "Panel60x40": (0.6, 0.4)}
 
 
+#: The insertion alone (a sanity task for learners): the 0.5 x 0.5 m panel starts held in
+#: front of the opening; a short task, hence its episode limit.
+INSERT_ENV_ID = "WindowInstall-Insert-v0"
+INSERT_EPISODE_STEPS = 200
+
+
+def _register_id(env_id: str, step_limit: int, **kwargs) -> str:
+    if env_id not in registry:
+        register(id=env_id, entry_point="window_bench.envs.env:WindowInstallEnv",
+                 max_episode_steps=step_limit, kwargs=kwargs)
+    return env_id
+
+
 def _register() -> list[str]:
     ids = []
     for exp in ("A", "B"):
         variants = {"": (0.5, 0.5), **{f"-{k}": v for k, v in OOD_PANELS.items()}}
         for suffix, (w, h) in variants.items():
-            env_id = f"WindowInstall-{exp}{suffix}-v0"
-            if env_id not in registry:
-                register(id=env_id, entry_point="window_bench.envs.env:WindowInstallEnv",
-                         max_episode_steps=600,
-                         kwargs={"experiment": exp, "panel_width": w, "panel_height": h})
-            ids.append(env_id)
+            ids.append(_register_id(f"WindowInstall-{exp}{suffix}-v0", 600, experiment=exp,
+                                    panel_width=w, panel_height=h))
+    # The env truncates at the limit itself too, whatever TimeLimit a caller wraps it in.
+    ids.append(_register_id(INSERT_ENV_ID, INSERT_EPISODE_STEPS, experiment="Insert",
+                            panel_width=0.5, panel_height=0.5,
+                            max_episode_steps=INSERT_EPISODE_STEPS))
     return ids
 
 

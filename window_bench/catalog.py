@@ -88,4 +88,11 @@ def _qcfql_as_published() -> dict:
     return PAPER_AGENT
 
 
+def _hilserl_own() -> dict:
+    from baselines.hilserl import HILSERL_OWN   # HIL-SERL's own protocol and settings
+
+    return HILSERL_OWN
+
+
 register_preset("qcfql-as-published", load=_qcfql_as_published)
+register_preset("hilserl-own", load=_hilserl_own)

@@ -1,4 +1,5 @@
-"""``WindowInstallEnv``: the Gymnasium environment of Experiments A and B.
+"""``WindowInstallEnv``: the Gymnasium environment of Experiments A and B (and of the
+insertion alone, ``experiment="Insert"``).
 
 One class serves every registered id; the experiment, the panel footprint and the
 clearance are constructor arguments (``window_bench/__init__.py`` registers the ids).
@@ -47,6 +48,7 @@ RANDOMIZATION_RANGES = {
 }
 A_POS_RANGE = 0.005                  # m per axis
 A_ROT_RANGE = np.deg2rad(2.0)        # rad, roll/pitch/yaw
+INSERT_STANDOFF = 0.03               # m beyond the pre-insertion pose, along the wall normal
 B_X_RANGE = (0.4, 0.6)
 B_Y_RANGE = (-0.3, 0.3)
 B_YAW_RANGE = np.deg2rad(15.0)
@@ -90,7 +92,8 @@ class WindowInstallEnv(gym.Env):
     **Task.** A KUKA LBR iiwa 14 with a vacuum cup moves a rigid panel (0.5 x 0.5 x 0.08 m,
     2.0 kg by default) into the opening until its front face rests against the back stop.
     Experiment A starts with the panel held on a 15-degree staging rack; Experiment B starts
-    with the panel flat on the ground and suction off.
+    with the panel flat on the ground and suction off; ``"Insert"`` starts with the panel
+    held square in front of the opening at the pre-insertion pose (the insertion alone).
 
     **Action.** ``Box(-1, 1, (7,))``: TCP position increment (x 0.025 m) and rotation
     increment (rotation vector, x 0.0873 rad), both in the current TCP frame, then vacuum
@@ -104,11 +107,14 @@ class WindowInstallEnv(gym.Env):
 
     **Randomizations** (Table 9, independent per episode from the reset seed): buck,
     window/frame and cup friction, contact solref time constant, and the panel pose (A: +-5 mm,
-    +-2 deg around the staged pose; B: x in [0.4, 0.6], y in [-0.3, 0.3] m, yaw +-15 deg).
+    +-2 deg around the staged pose; B: x in [0.4, 0.6], y in [-0.3, 0.3] m, yaw +-15 deg;
+    Insert: +-5 mm across the insertion axis, 0-3 cm further out along it, +-2 deg, the arm
+    holding the panel with the cup square on its face).
 
     **Success conditions.** Reward 1 and termination when the panel centre is within 2 mm of
     the seated target, cos(n_window, n_wall) > 0.95 and the panel speed is below 1 cm/s.
-    Truncation at 600 steps. Physics divergence truncates with ``info["sim_unstable"]``.
+    Truncation at ``max_episode_steps`` (600; 200 for the registered Insert id). Physics
+    divergence truncates with ``info["sim_unstable"]``.
     ``info["accepted"]`` says whether the acceptance test passes on this step, and
     ``info["is_success"]`` whether the episode, if it ends on this step, ends with the panel
     accepted (in the default mode both are true exactly on the terminating step).
@@ -228,10 +234,9 @@ class WindowInstallEnv(gym.Env):
                                     q_seed=rest_seat, q_rest=rest_seat)
         if err > 1e-4:
             raise RuntimeError(f"seated posture unreachable (IK error {err:.2e}) for {self.cfg}")
-        if self.cfg.experiment == "A":
-            center, mat = S.rack_panel_pose(self.cfg)
+        if self.cfg.starts_latched:
             # Seeded from the seated posture: the wrist then unwinds the same way it winds.
-            self.q_start, err = solve_ik(m, site, *self._tcp_for_panel(center, mat),
+            self.q_start, err = solve_ik(m, site, *self._tcp_for_panel(*self._held_start_pose()),
                                          q_seed=self.q_seat, q_rest=self.q_seat)
         else:
             down = np.column_stack([[-1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]])  # tool z down
@@ -242,6 +247,14 @@ class WindowInstallEnv(gym.Env):
         self.q_null = self.q_start.copy()
         if err > 1e-4:
             raise RuntimeError(f"reset posture unreachable (IK error {err:.2e}) for {self.cfg}")
+
+    def _held_start_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Nominal start pose (centre, rotation matrix) of a panel that starts in the cup: on
+        the staging rack (A), or square in front of the opening at the pre-insertion pose
+        (Insert)."""
+        if self.cfg.experiment == "A":
+            return S.rack_panel_pose(self.cfg)
+        return self._target_pos + S.WALL_NORMAL * S.PREINSERT_OFFSET, self._target_mat
 
     def _tcp_for_panel(self, center: np.ndarray, mat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nominal grasp: TCP at the suction-face centre, tool z into the face, tool y along
@@ -266,9 +279,13 @@ class WindowInstallEnv(gym.Env):
 
         mujoco.mj_resetData(m, d)
         d.qpos[:7] = self.q_start
-        if self.cfg.experiment == "A":
-            center, mat = S.rack_panel_pose(self.cfg)
-            dp = rng.uniform(-A_POS_RANGE, A_POS_RANGE, 3)
+        if self.cfg.starts_latched:
+            center, mat = self._held_start_pose()
+            if self.cfg.experiment == "A":
+                dp = rng.uniform(-A_POS_RANGE, A_POS_RANGE, 3)
+            else:   # Insert: x, z as A; y (the wall normal) up to INSERT_STANDOFF further out
+                dp = rng.uniform([-A_POS_RANGE, 0.0, -A_POS_RANGE],
+                                 [A_POS_RANGE, INSERT_STANDOFF, A_POS_RANGE])
             rpy = rng.uniform(-A_ROT_RANGE, A_ROT_RANGE, 3)
             r.update(panel_dx=dp[0], panel_dy=dp[1], panel_dz=dp[2],
                      panel_roll_deg=np.rad2deg(rpy[0]), panel_pitch_deg=np.rad2deg(rpy[1]),
@@ -283,12 +300,19 @@ class WindowInstallEnv(gym.Env):
             center = np.array([x, y, self.cfg.panel_thickness / 2])
         self._randomization = {k: float(v) for k, v in r.items()}
         self._set_panel_pose(center, mat)
+        if self.cfg.experiment == "Insert":
+            # The arm holds the panel where it starts: the cup square on the face centre.
+            q, err = solve_ik(m, sc.tcp_site, *self._tcp_for_panel(center, mat), q_seed=self.q_start)
+            if err > 1e-4:
+                raise RuntimeError(f"start posture unreachable (IK error {err:.2e}) for "
+                                   f"{self._randomization}")
+            d.qpos[:7] = q
         mujoco.mj_forward(m, d)
-        self._set_latch(self.cfg.experiment == "A")
+        self._set_latch(self.cfg.starts_latched)
         mujoco.mj_forward(m, d)
         self._steps = 0
         self._stages = StageTracker(self.cfg.seated_depth)
-        self._stages.suction_acquired = self._latched  # A: Pr(S) = 100 % by design
+        self._stages.suction_acquired = self._latched  # A, Insert: Pr(S) = 100 % by design
         self._stages.latched = self._latched
         self._contact_proxy[:] = 0
         self._sim_unstable = False

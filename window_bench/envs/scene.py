@@ -78,6 +78,8 @@ WALL_THICKNESS = 0.14    # depth of the wood buck
 BUCK_THICKNESS = 0.02    # lining boards
 BUCK_CHAMFER = 0.005     # 45-degree eased entry edge of the lining boards
 STOP_DEPTH = 0.10        # back stop strips start this far behind the wall face
+PREINSERT_OFFSET = STOP_DEPTH + 0.02  # panel centre this far out from the seat along the wall
+                         # normal: the leading face 2 cm in front of the wall face
 STOP_LIP = 0.015         # how far the stop strips reach into the opening
 OPENING_CENTER_X = 0.35
 OPENING_CENTER_Z = 0.60
@@ -110,12 +112,17 @@ CONTROL_SUBSTEPS = 50    # OSC updates per 10 Hz policy step
 #: --clearance`` states it in millimetres).
 CLEARANCE_RANGE = (0.0005, 0.02)
 
+#: Where an episode starts: "A" the panel held on the staging rack, "B" the panel on the
+#: ground and suction off, "Insert" the panel held square in front of the opening at the
+#: pre-insertion pose (the insertion alone).
+EXPERIMENTS = ("A", "B", "Insert")
+
 
 @dataclass(frozen=True)
 class SceneConfig:
     """Geometry of one benchmark instance. Every length in metres."""
 
-    experiment: str = "A"                   # "A" staged on the rack, "B" from the ground
+    experiment: str = "A"                   # see EXPERIMENTS
     panel_width: float = 0.5                # along the wall (x)
     panel_height: float = 0.5               # vertical when seated (z)
     clearance: float = 0.002                # per side
@@ -123,8 +130,9 @@ class SceneConfig:
     panel_mass: float | None = None         # default: areal density x area
 
     def __post_init__(self):
-        if self.experiment not in ("A", "B"):
-            raise ValueError(f"experiment must be 'A' or 'B', got {self.experiment!r}")
+        if self.experiment not in EXPERIMENTS:
+            raise ValueError(f"experiment must be one of {', '.join(map(repr, EXPERIMENTS))}, "
+                             f"got {self.experiment!r}")
         # Up to 0.6 m: a larger panel placed at the edge of the ground region (y = -0.3 m,
         # yaw 15 deg) would start inside the wall.
         for name, lo, hi in (("panel_width", 0.3, 0.6), ("panel_height", 0.3, 0.6),
@@ -134,6 +142,11 @@ class SceneConfig:
                 raise ValueError(f"{name}={v!r} is outside the supported range [{lo}, {hi}]")
         if self.panel_mass is not None and not (0.2 <= self.panel_mass <= 5.0):
             raise ValueError(f"panel_mass={self.panel_mass!r} is outside [0.2, 5.0] kg")
+
+    @property
+    def starts_latched(self) -> bool:
+        """The panel starts in the cup, suction latched (Pr(S) = 1 by design)."""
+        return self.experiment != "B"
 
     @property
     def mass(self) -> float:

@@ -35,7 +35,9 @@ class OperatorProfile:
     the per-step probability of a pause mid-motion and ``phase_hesitation`` the probability of
     a pause at each phase change, pauses lasting 1..``hesitation_max_steps`` steps;
     ``align_error_mm`` / ``align_error_deg`` bound the per-episode error of the visual
-    alignment (the installer's eye); ``grasp_settle_steps`` (B) is how long the installer
+    alignment (the installer's eye); ``coarse_align_error_mm`` / ``coarse_align_error_deg``
+    bound the error of a first, by-eye placement in front of the opening that the installer
+    then corrects after a close look (0: no by-eye placement); ``grasp_settle_steps`` (B) is how long the installer
     holds still once the cup latches before lifting (0: lifts at once).
 
     Takeovers: ``reaction_latency_steps`` between the cue and the takeover; trigger
@@ -62,6 +64,8 @@ class OperatorProfile:
     hesitation_max_steps: int = 6
     align_error_mm: float = 1.5
     align_error_deg: float = 0.75
+    coarse_align_error_mm: float = 0.0
+    coarse_align_error_deg: float = 0.0
     # takeovers
     reaction_latency_steps: int = 2
     stall_steps: int = 5
@@ -86,6 +90,8 @@ class OperatorProfile:
             "hesitation_max_steps": (self.hesitation_max_steps, 1, 50),
             "align_error_mm": (self.align_error_mm, 0.0, 10.0),
             "align_error_deg": (self.align_error_deg, 0.0, 5.0),
+            "coarse_align_error_mm": (self.coarse_align_error_mm, 0.0, 20.0),
+            "coarse_align_error_deg": (self.coarse_align_error_deg, 0.0, 5.0),
             "reaction_latency_steps": (self.reaction_latency_steps, 0, 50),
             "stall_steps": (self.stall_steps, 1, 100),
             "tilt_threshold_deg": (self.tilt_threshold_deg, 0.1, 45.0),
@@ -151,7 +157,7 @@ def get_operator(name_or_profile: str | OperatorProfile) -> OperatorProfile:
 
 
 #: Installer phases in which the panel is near or in contact with the opening.
-FINE_PHASES = ("align", "insert", "recover", "seat")
+FINE_PHASES = ("align", "look", "insert", "recover", "seat")
 FINE_NOISE_SCALE = 0.2
 
 
@@ -185,7 +191,9 @@ class HumanlikeInstaller:
         p = self.profile
         self.env = env.unwrapped
         self.installer = ScriptedInstaller(env, p.align_error_mm, p.align_error_deg, seed=seed,
-                                           grasp_settle_steps=p.grasp_settle_steps)
+                                           grasp_settle_steps=p.grasp_settle_steps,
+                                           coarse_align_error_mm=p.coarse_align_error_mm,
+                                           coarse_align_error_deg=p.coarse_align_error_deg)
         self.rng = np.random.default_rng(seed)
         self.noise = OUNoise(6, p.motion_noise, p.noise_tau_steps, self.rng)
         self.reset(seed)

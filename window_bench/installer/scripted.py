@@ -3,8 +3,9 @@
 * ``ScriptedInstaller`` - the privileged expert that stands in for the installer: it reads
   simulator state (panel pose, the in-hand grasp transform) but acts only through
   ``env.step(action)``, so its logs are valid demonstrations. Phases: acquire (B), lift,
-  transport, align, insert compliantly, detect stalls (wedging, jamming) and recover with
-  retract-pivot-reinsert, seat and settle.
+  transport (neither when the panel starts held in front of the opening), align, insert
+  compliantly, detect stalls (wedging, jamming) and recover with retract-pivot-reinsert,
+  seat and settle.
 * ``StraightPush`` - the naive controller: it transports like the installer, aligns the
   panel once to its estimate of the seat (the same imperfect eye as the installer's), then
   pushes straight along the tool axis and never looks again: no stall detection, no
@@ -60,7 +61,8 @@ class ScriptedInstaller(_PanelPoseMixin):
 
     # Distances in metres along the wall normal (toward the robot) from the seated pose.
     STAGING_OFFSET = 0.30
-    PREINSERT_OFFSET = S.STOP_DEPTH + 0.02   # leading face 2 cm in front of the wall face
+    PREINSERT_OFFSET = S.PREINSERT_OFFSET    # leading face 2 cm in front of the wall face
+    NEAR_PREINSERT = 0.05       # a panel held this close to the pre-insertion pose starts at align
     ALIGN_POS_TOL = 0.0003
     ALIGN_ROT_TOL = np.deg2rad(0.1)
     INSERT_SPEED = 0.004        # m per step
@@ -71,29 +73,43 @@ class ScriptedInstaller(_PanelPoseMixin):
     MAX_RECOVERIES = 8
 
     def __init__(self, env, align_error_mm: float = 1.0, align_error_deg: float = 0.5,
-                 seed: int | None = None, grasp_settle_steps: int = 0):
+                 seed: int | None = None, grasp_settle_steps: int = 0,
+                 coarse_align_error_mm: float = 0.0, coarse_align_error_deg: float = 0.0):
         """``align_error_*``: half-widths of a per-episode uniform error in the installer's
         estimate of where the seat is (lateral per axis, and rotation about each axis) - the
         accuracy of one visual alignment. Contact stalls reveal it: each recovery
         re-measures and shrinks it 4-fold. ``align_error_mm=0, align_error_deg=0`` gives a
         perfect eye. ``grasp_settle_steps`` (B): after the cup latches, hold still with the
-        vacuum on for this many steps before lifting (0: lift at once)."""
-        if align_error_mm < 0 or align_error_deg < 0:
-            raise ValueError(f"alignment errors must be >= 0, got {align_error_mm} mm, {align_error_deg} deg")
+        vacuum on for this many steps before lifting (0: lift at once).
+        ``coarse_align_error_*``: half-widths of the error of the installer's first, by-eye
+        placement in front of the opening; once the panel is there it takes a close look
+        (the error drops to the ``align_error_*`` draw) and corrects before inserting, so the
+        demonstration shows the correction. 0 and 0: one alignment with the close look."""
+        if min(align_error_mm, align_error_deg, coarse_align_error_mm, coarse_align_error_deg) < 0:
+            raise ValueError(f"alignment errors must be >= 0, got {align_error_mm} mm, {align_error_deg} deg, "
+                             f"coarse {coarse_align_error_mm} mm, {coarse_align_error_deg} deg")
         if isinstance(grasp_settle_steps, bool) or not 0 <= grasp_settle_steps <= 50:
             raise ValueError(f"grasp_settle_steps = {grasp_settle_steps!r} is outside [0, 50]")
         self.grasp_settle_steps = int(grasp_settle_steps)
         self.env = env.unwrapped
         self.align_error = (align_error_mm / 1000.0, np.deg2rad(align_error_deg))
+        self.coarse_align_error = (coarse_align_error_mm / 1000.0, np.deg2rad(coarse_align_error_deg))
         self.rng = np.random.default_rng(seed)
         self.reset()
+
+    def _draw_error(self, e_lin: float, e_rot: float) -> tuple[np.ndarray, np.ndarray]:
+        pos = np.array([self.rng.uniform(-e_lin, e_lin), 0.0, self.rng.uniform(-e_lin, e_lin)])
+        return pos, self.rng.uniform(-e_rot, e_rot, 3)
 
     def reset(self, seed: int | None = None) -> None:
         if seed is not None:
             self.rng = np.random.default_rng(seed)
-        e_lin, e_rot = self.align_error
-        self.err_pos = np.array([self.rng.uniform(-e_lin, e_lin), 0.0, self.rng.uniform(-e_lin, e_lin)])
-        self.err_rot = self.rng.uniform(-e_rot, e_rot, 3)
+        self.err_pos, self.err_rot = self._draw_error(*self.align_error)
+        # The by-eye placement's error, drawn after the close look's so that a profile
+        # without one keeps its demonstrations.
+        self.coarse = any(self.coarse_align_error)
+        self.coarse_pos, self.coarse_rot = (self._draw_error(*self.coarse_align_error)
+                                            if self.coarse else (np.zeros(3), np.zeros(3)))
         self.phase = None
         self.depth_hist: list[float] = []
         self.recoveries = 0
@@ -111,6 +127,8 @@ class ScriptedInstaller(_PanelPoseMixin):
     def _seated(self):
         """Where the installer believes the seat is (the true seat plus its estimate error)."""
         target, tmat = self.env.seated_pose
+        if self.coarse:
+            return target + self.coarse_pos, rotvec_to_mat(self.coarse_rot) @ tmat
         return target + self.err_pos, rotvec_to_mat(self.err_rot) @ tmat
 
     def _remeasure(self) -> None:
@@ -121,6 +139,16 @@ class ScriptedInstaller(_PanelPoseMixin):
         p, _ = self.env.panel_pose()
         target, _ = self._seated()
         return float((p - target) @ S.INSERTION_AXIS)   # 0 at the seat, < 0 outside
+
+    def _near_preinsert(self) -> bool:
+        """Is the held panel in front of the opening, within ``NEAR_PREINSERT`` of the
+        pre-insertion pose (as the insertion alone starts)? Then there is nothing to lift or
+        transport."""
+        p, _ = self.env.panel_pose()
+        target, _ = self._seated()
+        offset = p - target - S.WALL_NORMAL * self.PREINSERT_OFFSET
+        out = float(offset @ S.WALL_NORMAL)
+        return -0.001 < out < self.NEAR_PREINSERT and np.linalg.norm(offset) < self.NEAR_PREINSERT
 
     def _panel_goal_action(self, panel_pos, panel_mat, *, max_lin=1.0, max_rot=1.0):
         tcp_pos, tcp_mat = self.env.tcp_pose()
@@ -160,7 +188,10 @@ class ScriptedInstaller(_PanelPoseMixin):
     # -------------------------------------------------------------- policy
     def act(self, obs=None) -> np.ndarray:
         if self.phase is None:
-            self._set("lift" if self.env.suction_engaged else "approach")
+            if not self.env.suction_engaged:
+                self._set("approach")
+            else:
+                self._set("align" if self._near_preinsert() else "lift")
             self.lift_start = self.env.panel_pose()[0].copy()
         a = getattr(self, f"_{self.phase}")()
         self.t += 1
@@ -226,9 +257,17 @@ class ScriptedInstaller(_PanelPoseMixin):
         goal = target + S.WALL_NORMAL * self.PREINSERT_OFFSET
         e_pos, e_rot = self._panel_error(goal, tmat)
         if (e_pos < self.ALIGN_POS_TOL * 3 and e_rot < self.ALIGN_ROT_TOL) or self.phase_steps > 60:
+            if self.coarse:   # placed by eye: now the close look, and align again
+                self.coarse = False
+                self._set("look")
+                return self._look()
             self._set("insert")
             self.depth_hist = []
         return self._panel_goal_action(goal, tmat, max_lin=0.6, max_rot=0.3)
+
+    def _look(self):
+        """After the by-eye placement: the same alignment, to the close look's estimate."""
+        return self._align()
 
     def _insert(self):
         target, tmat = self._seated()

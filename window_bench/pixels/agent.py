@@ -38,6 +38,10 @@ from window_bench.harness.agent import (Agent, AgentSpec, load_optimizer_state, 
 from window_bench.pixels.encoder import (FEATURE_VALUES, OBS_DIM, PROPRIO_DIM, VIEW_FEATURES,
                                          VIEWS, PixelObsEncoder)
 
+#: Index of the vacuum flag in the flat pixel observation: the last proprioceptive value
+#: (``robot0_proprio`` = joint positions, joint velocities, end-effector position, vacuum).
+VACUUM_INDEX = OBS_DIM - 1
+
 
 def check_pixel_spec(name: str, spec: AgentSpec) -> list:
     """The proprioception part of the harness's demo statistics (``obs_mean``/``obs_std``
@@ -235,18 +239,25 @@ class PixelHILSERL(PixelAgent):
     def learn(self, sample) -> tuple[dict[str, float], int]:
         return self.update(sample), self.config.critic_actor_ratio
 
+    def act(self, obs, deterministic: bool = False, **kwargs) -> np.ndarray:
+        """As :meth:`PixelAgent.act`; the grasp critic's "stay" keeps the vacuum state of
+        the raw observation (its last value, the proprioception's vacuum flag)."""
+        flag = np.asarray(obs, np.float32).reshape(-1, OBS_DIM)[:, VACUUM_INDEX]
+        return super().act(obs, deterministic, vacuum_flag=flag, **kwargs)
+
     def _embedded(self, batch, grad: bool):
         """The learner's prepared batch on embeddings; with ``grad``, also the embedding
         whose gradient trains the aggregation and the leaf the critic losses write it to.
-        Without, only ``s`` is embedded: the actor and temperature step reads no ``s'``."""
+        Without, only ``s`` is embedded: the actor and temperature step reads no ``s'``.
+        The raw observations' vacuum flags go with it (the grasp critic's labels)."""
+        flag = torch.as_tensor(batch["obs"])[:, VACUUM_INDEX].float()
+        rest = batch.exclude("obs", "next_obs").set("vacuum_flag", flag)
         if not grad:
             emb = self.encoder(torch.as_tensor(batch["obs"]))
-            return self.agent._prepare(batch.exclude("obs", "next_obs").set("obs", emb)
-                                       .set("next_obs", emb)), None, None
+            return self.agent._prepare(rest.set("obs", emb).set("next_obs", emb)), None, None
         emb, next_emb = self.encoder.encode_pair(torch.as_tensor(batch["obs"]),
                                                  torch.as_tensor(batch["next_obs"]))
-        b = self.agent._prepare(batch.exclude("obs", "next_obs").set("obs", emb.detach())
-                                .set("next_obs", next_emb))
+        b = self.agent._prepare(rest.set("obs", emb.detach()).set("next_obs", next_emb))
         # The learner's critic and grasp-critic steps each run their own backward through
         # the observation: a leaf collects both gradients, which then flow into the
         # aggregation in one backward (its graph is used once).
