@@ -39,6 +39,27 @@ def test_bench_rejects_bad_input_with_a_clear_message(argv, needle, capsys):
     assert needle in capsys.readouterr().err
 
 
+def test_run_preset_gives_its_overrides_and_agent_config_wins(tmp_path, capsys):
+    """``--preset hilserl-own`` runs HIL-SERL with its authors' settings (recorded in the
+    manifest); ``--agent-config`` entries override the preset's; a preset for another agent
+    is one line naming the field, exit 2, nothing written."""
+    from baselines.hilserl import HILSERL_OWN
+    from window_bench.cli import _agent_config
+
+    assert _agent_config("hilserl-own", None) == dict(HILSERL_OWN)
+    assert _agent_config("hilserl-own", ["gamma=0.97"])["gamma"] == 0.97
+    assert _agent_config(None, ["alpha=100"]) == {"alpha": 100}
+    out = tmp_path / "run"
+    assert main(["run", "--method", "qcfql", "--profile", "smoke", "--preset", "hilserl-own",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown agent config field 'offline_steps'" in err[0]
+    assert not out.exists()
+    with pytest.raises(SystemExit):
+        main(["run", "--preset", "nobody"])
+    assert "invalid choice: 'nobody'" in capsys.readouterr().err
+
+
 def test_bench_calibrate_writes_table_json_and_plot(tmp_path):
     out = tmp_path / "cal"
     assert main(["calibrate", "--env", "WindowInstall-B-v0", "--controllers", "installer",

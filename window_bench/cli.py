@@ -28,6 +28,14 @@ from window_bench.harness.evaluation import atomic_write_text, evaluate, provena
 from window_bench.installer.scripted import CONTROLLERS
 
 
+
+def _agent_config(preset: str | None, items: list[str] | None) -> dict:
+    """The run's agent-config overrides: the preset's, then ``--agent-config`` on top."""
+    from window_bench.harness.agent import parse_overrides
+    from window_bench.harness.methods import get_preset
+
+    return {**(dict(get_preset(preset)) if preset else {}), **parse_overrides(items)}
+
 def _fmt_rate(s: dict) -> str:
     lo, hi = s["wilson95"]
     return f"{100 * s['success_rate']:.1f} % [{100 * lo:.1f}, {100 * hi:.1f}]"
@@ -217,12 +225,10 @@ def cmd_run(args) -> int:
             except ValueError:
                 raise ValueError(f"--acceptance-noise {fp} {fn} {delay}: expected two rates "
                                  f"in [0, 1] and a delay in steps (an integer >= 0)") from None
-        from window_bench.harness.agent import parse_overrides
-
         run = Run(args.method, args.env, args.profile, args.seed, args.out, resume=args.resume,
                   operator=args.operator, demos=args.demos, acceptance_noise=noise,
                   track=args.track, encoder_weights=args.encoder_weights,
-                  agent_config=parse_overrides(args.agent_config), h=args.h,
+                  agent_config=_agent_config(args.preset, args.agent_config), h=args.h,
                   final_episodes=args.final_episodes, final_seed_set=args.final_seed_set,
                   stage1_cache=args.stage1_cache, eval_workers=args.eval_workers,
                   pixel_demos_cache=args.pixel_demos_cache)
@@ -509,6 +515,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--agent-config", nargs="+", metavar="KEY=VALUE",
                    help="override fields of the agent's config (recorded in the results), "
                         "e.g. act_noise_scale=0.0 alpha=100")
+    from window_bench.harness.methods import PRESETS
+
+    r.add_argument("--preset", choices=sorted(PRESETS), default=None,
+                   help="start from a published agent config (its overrides; --agent-config "
+                        "entries win), e.g. hilserl-own: HIL-SERL as its authors run it")
     from window_bench.harness.seeds import MAX_EPISODES, SEED_SETS
 
     r.add_argument("--h", type=arg.positive, default=None,
