@@ -57,7 +57,7 @@ OBS_CLIP = 10.0
 # ---------------------------------------------------------------------------- config
 
 #: Choices of ``QCFQLConfig.prior_data`` (the flow teacher's training chunks).
-PRIOR_DATA = ("replay", "accepted", "accepted_no_takeover", "demo")
+PRIOR_DATA = ("replay", "accepted", "accepted_no_takeover", "autonomous", "demo")
 
 #: ``provenance_code`` of a demonstration and of a takeover step in replay batches.
 DEMO_CODE, TAKEOVER_CODE = PROVENANCE_CODES["demo"], PROVENANCE_CODES["takeover"]
@@ -157,7 +157,9 @@ class QCFQLConfig:
     ``"accepted_no_takeover"`` (default), the same without the takeover steps: the
     installer's takeovers still turn failing episodes into accepted ones, and the critic
     still learns from them, but the prior imitates only the demonstrations and the policy's
-    own steps; ``"demo"``, the chunks of D_demo only. The critic and the student use every
+    own steps; ``"autonomous"``, the accepted episodes that had no takeover at all (D_demo
+    and the policy's own successes: an episode the installer rescued also holds the policy's
+    steps that needed rescuing); ``"demo"``, the chunks of D_demo only. The critic and the student use every
     chunk in all four. Not in the paper: on WindowInstall-A, flow BC on all online chunks
     took the averaged student from 80 % to 5 % in 4k updates, and on the takeover steps
     alone to 0 %; complete runs ended at 20 % (``"replay"``), 40-80 % (``"accepted"``) and
@@ -509,8 +511,9 @@ class QCFQLAgent(Agent):
         if mode == "replay":
             return None
         needs = {"accepted": ("episode_accepted",), "demo": ("provenance_code",),
-                 "accepted_no_takeover": ("episode_accepted", "provenance_code")}[mode]
-        shapes = {"episode_accepted": (B,), "provenance_code": (B, h)}
+                 "accepted_no_takeover": ("episode_accepted", "provenance_code"),
+                 "autonomous": ("episode_accepted", "episode_supervised")}[mode]
+        shapes = {"episode_accepted": (B,), "episode_supervised": (B,), "provenance_code": (B, h)}
         values = {}
         for key in needs:
             if key not in batch.keys():
@@ -528,6 +531,8 @@ class QCFQLAgent(Agent):
             mask &= (values["provenance_code"] == DEMO_CODE).any(-1, keepdim=True)
         if mode == "accepted_no_takeover":
             mask &= values["provenance_code"] != TAKEOVER_CODE
+        if mode == "autonomous":
+            mask &= ~values["episode_supervised"].bool().unsqueeze(-1)
         return mask.float()
 
     # ------------------------------------------------------------------ losses

@@ -60,6 +60,7 @@ def reference_chunks(ep, h, gamma):
             provenance_mix=[str(ep.provenance[t]) for t in real] + [""] * (h - len(real)),
             any_takeover=any(ep.provenance[t] == "takeover" for t in real),
             episode_accepted=bool(ep.terminated[-1]),
+            episode_supervised=bool((np.asarray(ep.provenance) == "takeover").any()),
         ))
         k += 1
     return rows
@@ -84,6 +85,7 @@ def assert_matches_reference(out, ep, h, gamma):
         assert out["provenance_mix"][k].tolist() == r["provenance_mix"]
         assert bool(out["any_takeover"][k]) is r["any_takeover"]
         assert bool(out["episode_accepted"][k]) is r["episode_accepted"]
+        assert bool(out["episode_supervised"][k]) is r["episode_supervised"]
         assert out["discount"][k] == pytest.approx(gamma ** h, rel=1e-6)
 
 

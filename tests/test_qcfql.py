@@ -265,12 +265,21 @@ def test_prior_data_demo_reads_provenance_and_bad_input_is_named():
     # accepted rows, minus their takeover steps (and the padded step of row 3 is its own
     # business: action_mask)
     assert agent.prepare(b)["prior_mask"].tolist() == [[1, 1], [1, 1], [1, 0], [0, 0]]
+    # autonomous: accepted episodes with no takeover anywhere (row 1's episode had one
+    # outside this chunk: the installer may have rescued it)
+    b["episode_supervised"] = torch.tensor([False, True, True, False])
+    agent = QCFQLAgent(OBS, A, tiny(h=h, prior_data="autonomous"), seed=0)
+    assert agent.prepare(b)["prior_mask"].tolist() == [[1, 1], [0, 0], [0, 0], [0, 0]]
+    no_flag = {k: v for k, v in b.items() if k != "episode_supervised"}
+    with pytest.raises(ValueError, match="needs batch\\['episode_supervised'\\]"):
+        agent.prepare(no_flag)
+    agent = QCFQLAgent(OBS, A, tiny(h=h, prior_data="accepted_no_takeover"), seed=0)
     bad = make_batch(B, h)
     del bad["provenance_code"]
     with pytest.raises(ValueError, match="needs batch\\['provenance_code'\\]"):
         agent.prepare(bad)
     with pytest.raises(ValueError, match="prior_data = 'online'.*'replay', 'accepted', "
-                                         "'accepted_no_takeover', 'demo'"):
+                                         "'accepted_no_takeover', 'autonomous', 'demo'"):
         QCFQLConfig(prior_data="online")
     # nothing accepted: the flow loss is 0 and gives the teacher no gradient
     agent = QCFQLAgent(OBS, A, tiny(h=h), seed=0)

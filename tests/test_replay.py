@@ -206,3 +206,18 @@ def test_episode_accepted_is_stored_and_derived_for_states_saved_without_it():
     old.load_state_dict(sd)
     batch = old.sample(200)
     assert torch.equal(batch["episode_accepted"], batch["episode_id"] == 1)
+
+
+def test_episode_supervised_marks_every_chunk_of_an_episode_with_a_takeover():
+    rb = ChunkReplay(capacity=20, h=2, gamma=0.9, seed=0)
+    rb.add_episode(make_log(6, 1, provenance=["policy"] * 4 + ["takeover"] * 2))  # last chunk
+    rb.add_episode(make_log(4, 2))
+    batch = rb.sample(200)
+    assert torch.equal(batch["episode_supervised"], batch["episode_id"] == 1)
+    assert not batch["any_takeover"][batch["chunk_start"] == 0].any()
+    sd = rb.state_dict()
+    del sd["data"]["episode_supervised"]               # a state saved before the key existed
+    old = ChunkReplay(capacity=20, h=2, gamma=0.9)
+    old.load_state_dict(sd)
+    batch = old.sample(200)
+    assert torch.equal(batch["episode_supervised"], batch["episode_id"] == 1)

@@ -32,7 +32,7 @@ from window_bench.data.steplog import EpisodeLog
 #: Keys of the dict returned by :func:`chunk_transitions`, in order.
 CHUNK_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount", "terminal",
               "valid", "n_steps", "provenance_mix", "chunk_start", "any_takeover", "episode_id",
-              "episode_accepted")
+              "episode_accepted", "episode_supervised")
 
 
 def _check_args(h, gamma) -> tuple[int, float]:
@@ -57,7 +57,9 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
     steps; ``provenance_mix`` (K, h) str, padded with ``""``; ``chunk_start`` (K,) int64
     ``k*h``; ``any_takeover`` (K,) bool; ``episode_id`` (K,) int64; ``episode_accepted`` (K,)
     bool, the same for every chunk: the episode ended in acceptance (it terminated), so a
-    learner can tell chunks of accepted episodes from the rest (``QCFQLConfig.prior_data``).
+    learner can tell chunks of accepted episodes from the rest (``QCFQLConfig.prior_data``);
+    ``episode_supervised`` (K,) bool, the same for every chunk: a takeover happened somewhere
+    in the episode (an accepted one may owe its acceptance to the installer).
 
     Raises ``ValueError`` for ``h`` not an integer >= 1, ``gamma`` outside [0, 1], or an
     invalid episode (:meth:`EpisodeLog.validate`).
@@ -111,6 +113,7 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
         # After concat_chunks, (episode_id, chunk_start) still names the step-log window.
         "episode_id": np.full(K, episode.episode_id, dtype=np.int64),
         "episode_accepted": np.full(K, bool(episode.terminated[-1])),
+        "episode_supervised": np.full(K, bool((prov == "takeover").any())),
     }
 
 

@@ -51,7 +51,7 @@ PROVENANCE_CODES = {"": 0, "demo": 1, "policy": 2, "takeover": 3}
 #: ``provenance_code`` in place of the ``provenance_mix`` strings).
 REPLAY_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount", "terminal",
                "valid", "n_steps", "chunk_start", "any_takeover", "episode_id",
-               "episode_accepted", "provenance_code")
+               "episode_accepted", "episode_supervised", "provenance_code")
 
 
 def _check_count(name: str, value, minimum: int) -> int:
@@ -235,6 +235,9 @@ class ChunkReplay:
                 # episode was accepted iff one of its chunks terminated
                 accepted = data["episode_id"][data["terminal"]]
                 data["episode_accepted"] = torch.isin(data["episode_id"], accepted)
+            if "episode_supervised" not in data:   # saved before the key existed
+                supervised = data["episode_id"][data["any_takeover"]]
+                data["episode_supervised"] = torch.isin(data["episode_id"], supervised)
             self._buffer.extend(TensorDict(data, batch_size=[n]))
         self._buffer.writer.load_state_dict(dict(sd["writer"]))
         self.chunks_added = sd["chunks_added"]
