@@ -193,6 +193,15 @@ def test_mixed_batch_exact_split():
         mixed_batch(ChunkReplay(capacity=5, h=2, gamma=0.9), online, 8)
 
 
+def saved_without(rb: ChunkReplay, key: str) -> ChunkReplay:
+    """``rb`` saved as a buffer from before ``key`` existed, and loaded again."""
+    sd = rb.state_dict()
+    del sd["data"][key]
+    old = ChunkReplay(capacity=rb.capacity, h=rb.h, gamma=rb.gamma)
+    old.load_state_dict(sd)
+    return old
+
+
 def test_episode_accepted_is_stored_and_derived_for_states_saved_without_it():
     rb = ChunkReplay(capacity=20, h=2, gamma=0.9, seed=0)
     rb.add_episode(make_log(5, 1))                     # accepted: 3 chunks
@@ -200,11 +209,7 @@ def test_episode_accepted_is_stored_and_derived_for_states_saved_without_it():
     batch = rb.sample(200)
     expected = batch["episode_id"] == 1
     assert torch.equal(batch["episode_accepted"], expected)
-    sd = rb.state_dict()
-    del sd["data"]["episode_accepted"]                 # a state saved before the key existed
-    old = ChunkReplay(capacity=20, h=2, gamma=0.9)
-    old.load_state_dict(sd)
-    batch = old.sample(200)
+    batch = saved_without(rb, "episode_accepted").sample(200)
     assert torch.equal(batch["episode_accepted"], batch["episode_id"] == 1)
 
 
@@ -215,9 +220,5 @@ def test_episode_supervised_marks_every_chunk_of_an_episode_with_a_takeover():
     batch = rb.sample(200)
     assert torch.equal(batch["episode_supervised"], batch["episode_id"] == 1)
     assert not batch["any_takeover"][batch["chunk_start"] == 0].any()
-    sd = rb.state_dict()
-    del sd["data"]["episode_supervised"]               # a state saved before the key existed
-    old = ChunkReplay(capacity=20, h=2, gamma=0.9)
-    old.load_state_dict(sd)
-    batch = old.sample(200)
+    batch = saved_without(rb, "episode_supervised").sample(200)
     assert torch.equal(batch["episode_supervised"], batch["episode_id"] == 1)
