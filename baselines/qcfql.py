@@ -175,6 +175,16 @@ class QCFQLConfig:
     fine_pose_deg: float = 1.0
     """Angle scale of the fine rotation features (used when ``fine_pose_mm > 0``)."""
 
+    takeover_value: float | None = None
+    """The critic's target for a chunk of the policy's at whose end the installer takes over
+    on a safety cue (``takeover_onset``, :func:`window_bench.data.chunks.chunk_transitions`).
+    ``None`` (paper, HIL-SERL): such a chunk bootstraps through the takeover like any other,
+    so a state the installer rescues from keeps the value of the rescue. A number (not in the
+    paper; RLIF, Luo et al. 2023, treats a takeover as a failure signal): the policy's
+    segment ends there, a terminal chunk with this reward, so the policy learns to stay out
+    of the states that make the installer take over. The installer's own chunks are learnt
+    from as before. Needs batches with ``takeover_onset`` (ChunkReplay's)."""
+
     binary_gripper: bool = False
     """Feed the critic the vacuum command as the env executes it (``+1`` where the last
     action entry of each step is > 0.5, else ``-1``) so that ``Q`` values realized chunks and
@@ -229,6 +239,11 @@ class QCFQLConfig:
         if self.prior_data not in PRIOR_DATA:
             raise ValueError(f"QCFQLConfig.prior_data = {self.prior_data!r} is not allowed: "
                              f"use one of {', '.join(map(repr, PRIOR_DATA))}")
+        value = self.takeover_value
+        if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Real)
+                                  or not -1.0 <= value <= 1.0):
+            raise ValueError(f"QCFQLConfig.takeover_value = {value!r} is not allowed: it must "
+                             f"be null or a real number in [-1.0, 1.0]")
         if self.distill_reduction not in ("sum", "mean"):
             raise ValueError(f"QCFQLConfig.distill_reduction = {self.distill_reduction!r} is "
                              f"not allowed: use 'sum' or 'mean'")
@@ -494,6 +509,8 @@ class QCFQLAgent(Agent):
                                  f"{tuple(t[key].shape)}, expected {shape} (h = {h}, "
                                  f"action_dim = {A}, obs_dim = {self.obs_dim})")
         f32 = torch.float32
+        if self.config.takeover_value is not None:
+            t["terminal"], t["reward"] = self.end_at_takeover(batch, t["terminal"], t["reward"])
         return {"prior_mask": self.prior_mask(batch, B),
                 "obs": self.normalize(t["obs"].to(f32)),
                 "next_obs": self.normalize(t["next_obs"].to(f32)),
@@ -501,6 +518,22 @@ class QCFQLAgent(Agent):
                 "action_mask": t["action_mask"].to(f32),
                 "reward": t["reward"].to(f32), "discount": t["discount"].to(f32),
                 "not_terminal": 1.0 - t["terminal"].to(f32), "valid": t["valid"].to(f32)}
+
+    def end_at_takeover(self, batch: Mapping, terminal: torch.Tensor,
+                        reward: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``terminal`` and ``reward`` with every ``takeover_onset`` chunk made terminal with
+        reward ``config.takeover_value``; a batch without the key raises ``ValueError``."""
+        if "takeover_onset" not in batch.keys():
+            raise ValueError(f"QCFQLAgent.update: takeover_value = "
+                             f"{self.config.takeover_value!r} needs batch['takeover_onset'] "
+                             f"(ChunkReplay batches carry it); use takeover_value=None for "
+                             f"batches without it")
+        onset = torch.as_tensor(batch["takeover_onset"]).bool()
+        if tuple(onset.shape) != tuple(reward.shape):
+            raise ValueError(f"QCFQLAgent.update: batch['takeover_onset'] has shape "
+                             f"{tuple(onset.shape)}, expected {tuple(reward.shape)}")
+        value = torch.full_like(reward, float(self.config.takeover_value), dtype=torch.float32)
+        return terminal.bool() | onset, torch.where(onset, value, reward.float())
 
     def prior_mask(self, batch: Mapping, B: int) -> torch.Tensor | None:
         """(B, h) float 0/1: the steps the flow teacher learns from (``config.prior_data``);

@@ -51,6 +51,10 @@ def reference_chunks(ep, h, gamma):
         for i, t in enumerate(real):
             acts[i] = ep.actions[t]
         ends_here = (T - 1) in real
+        prov, kind = list(ep.provenance), list(ep.takeover_kind)
+        onset = prov[t0] != "takeover" and any(
+            prov[t] == "takeover" and kind[t] == "safety" and prov[t - 1] != "takeover"
+            for t in range(t0 + 1, min(t0 + h + 1, T)))
         rows.append(dict(
             obs=ep.observations[t0], next_obs=ep.observations[min(t0 + h, T)], actions=acts,
             action_mask=np.array([i < len(real) for i in range(h)]), reward=R,
@@ -61,6 +65,7 @@ def reference_chunks(ep, h, gamma):
             any_takeover=any(ep.provenance[t] == "takeover" for t in real),
             episode_accepted=bool(ep.terminated[-1]),
             episode_supervised=bool((np.asarray(ep.provenance) == "takeover").any()),
+            takeover_onset=onset,
         ))
         k += 1
     return rows
@@ -86,6 +91,7 @@ def assert_matches_reference(out, ep, h, gamma):
         assert bool(out["any_takeover"][k]) is r["any_takeover"]
         assert bool(out["episode_accepted"][k]) is r["episode_accepted"]
         assert bool(out["episode_supervised"][k]) is r["episode_supervised"]
+        assert bool(out["takeover_onset"][k]) is r["takeover_onset"]
         assert out["discount"][k] == pytest.approx(gamma ** h, rel=1e-6)
 
 
@@ -469,3 +475,17 @@ def test_concat_chunks_errors():
     partial = {k: v for k, v in a.items() if k != "valid"}
     with pytest.raises(ValueError, match="keys"):
         concat_chunks([a, partial])
+
+
+def test_takeover_onset_marks_the_policy_chunk_a_safety_takeover_ends():
+    P, T = "policy", "takeover"
+    # h = 3: chunk 0 policy-only, the installer takes over on chunk 1's first step (the
+    # boundary); chunk 2 starts with the installer; the policy resumes at 9 and is taken
+    # over mid-chunk at 10; a coverage takeover at 13 is not the policy's failure.
+    prov = [P, P, P, T, T, T, T, T, T, P, T, T, P, T, T]
+    kind = ["safety" if p == T else "" for p in prov]
+    kind[13] = kind[14] = "coverage"
+    out = chunk_transitions(make_log(len(prov), provenance=prov, takeover_kind=kind), 3, 0.9)
+    assert out["takeover_onset"].tolist() == [True, False, False, True, False]
+    assert_matches_reference(out, make_log(len(prov), provenance=prov, takeover_kind=kind), 3,
+                             0.9)

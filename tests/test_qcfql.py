@@ -45,14 +45,15 @@ def make_batch(B, h, seed=0, obs_dim=OBS, action_dim=A):
         "provenance_code": torch.full((B, h), 2, dtype=torch.uint8)}, batch_size=[B])
 
 
-def episode(T, end, rewards=None, obs_dim=OBS):
+def episode(T, end, rewards=None, obs_dim=OBS, provenance=None, takeover_kind=None):
     obs = np.arange((T + 1) * obs_dim, dtype=np.float32).reshape(T + 1, obs_dim) / 10
     term, trunc = np.zeros(T, bool), np.zeros(T, bool)
     (term if end == "terminated" else trunc)[-1] = True
     rewards = np.zeros(T, np.float32) if rewards is None else np.asarray(rewards, np.float32)
     return EpisodeLog(observations=obs, actions=np.full((T, A), 0.3, np.float32),
                       rewards=rewards, terminated=term, truncated=trunc,
-                      provenance=["policy"] * T, takeover_kind=[""] * T)
+                      provenance=["policy"] * T if provenance is None else provenance,
+                      takeover_kind=[""] * T if takeover_kind is None else takeover_kind)
 
 
 def as_batch(chunks):
@@ -99,6 +100,33 @@ def test_td_target_terminal_mid_chunk_masks_bootstrap_and_sums_rewards():
     y = agent.td_target(agent.prepare(as_batch(ch)))
     # chunk 0: R = 0, bootstrap gamma^h * mean(1, 3); chunk 1: R = 0.9, masked
     assert y.tolist() == pytest.approx([gamma ** 3 * 2.0, 0.9], abs=1e-6)
+
+
+def test_takeover_value_ends_the_policys_segment_where_the_installer_takes_over():
+    gamma, h = 0.9, 3
+    # the policy's chunk 0 ends in a safety takeover (steps 2-5); the policy resumes at 6
+    # and the episode is accepted on its last step
+    ep = episode(9, "terminated", rewards=[0] * 8 + [1],
+                 provenance=["policy"] * 2 + ["takeover"] * 4 + ["policy"] * 3,
+                 takeover_kind=[""] * 2 + ["safety"] * 4 + [""] * 3)
+    ch = chunk_transitions(ep, h, gamma)
+    assert ch["takeover_onset"].tolist() == [True, False, False]
+    batch = {**as_batch(ch), "takeover_onset": torch.as_tensor(ch["takeover_onset"])}
+    paper = QCFQLAgent(OBS, A, tiny(h=h, gamma=gamma), seed=0)
+    ours = QCFQLAgent(OBS, A, tiny(h=h, gamma=gamma, takeover_value=-0.5), seed=0)
+    for agent in (paper, ours):
+        set_constant_critic(agent.target_critic, [1.0, 3.0])
+    boot = gamma ** 3 * 2.0
+    # paper: chunk 0 bootstraps through the takeover; ours: terminal with the set value.
+    # The installer's chunk 1 and the policy's last chunk are the same in both.
+    assert paper.td_target(paper.prepare(batch)).tolist() == pytest.approx(
+        [boot, boot, gamma ** 2], abs=1e-6)
+    assert ours.td_target(ours.prepare(batch)).tolist() == pytest.approx(
+        [-0.5, boot, gamma ** 2], abs=1e-6)
+    with pytest.raises(ValueError, match="needs batch\\['takeover_onset'\\]"):
+        ours.prepare(as_batch(ch))
+    with pytest.raises(ValueError, match="takeover_value = 2 is not allowed.*\\[-1.0, 1.0\\]"):
+        QCFQLConfig(takeover_value=2)
 
 
 def test_td_target_uses_mean_over_ensemble_or_min_when_asked():

@@ -32,7 +32,7 @@ from window_bench.data.steplog import EpisodeLog
 #: Keys of the dict returned by :func:`chunk_transitions`, in order.
 CHUNK_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount", "terminal",
               "valid", "n_steps", "provenance_mix", "chunk_start", "any_takeover", "episode_id",
-              "episode_accepted", "episode_supervised")
+              "episode_accepted", "episode_supervised", "takeover_onset")
 
 
 def _check_args(h, gamma) -> tuple[int, float]:
@@ -59,7 +59,11 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
     bool, the same for every chunk: the episode ended in acceptance (it terminated), so a
     learner can tell chunks of accepted episodes from the rest (``QCFQLConfig.prior_data``);
     ``episode_supervised`` (K,) bool, the same for every chunk: a takeover happened somewhere
-    in the episode (an accepted one may owe its acceptance to the installer).
+    in the episode (an accepted one may owe its acceptance to the installer);
+    ``takeover_onset`` (K,) bool: the chunk began with the policy's own steps and a *safety*
+    takeover started inside it or on the first step after it (the policy's segment ends
+    here: ``QCFQLConfig.takeover_value``). Coverage takeovers are not the policy's failures
+    and do not count.
 
     Raises ``ValueError`` for ``h`` not an integer >= 1, ``gamma`` outside [0, 1], or an
     invalid episode (:meth:`EpisodeLog.validate`).
@@ -96,6 +100,14 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
 
     prov = np.asarray(episode.provenance).astype(str)
     provenance_mix = np.where(mask, prov[idx], "")
+    # A safety takeover starts at step t when step t is the installer's and step t-1 was not;
+    # it ends the segment of the policy's chunk holding step t-1 (t may be the next chunk's
+    # first step: the installer took over right at the boundary).
+    safety = (prov == "takeover") & (np.asarray(episode.takeover_kind).astype(str) == "safety")
+    onset_steps = np.flatnonzero(safety[1:] & (prov[:-1] != "takeover")) + 1
+    takeover_onset = np.zeros(K, dtype=bool)
+    takeover_onset[(onset_steps - 1) // h] = True
+    takeover_onset &= prov[starts] != "takeover"
 
     return {
         "obs": obs[starts],  # fancy indexing: a copy
@@ -114,6 +126,7 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
         "episode_id": np.full(K, episode.episode_id, dtype=np.int64),
         "episode_accepted": np.full(K, bool(episode.terminated[-1])),
         "episode_supervised": np.full(K, bool((prov == "takeover").any())),
+        "takeover_onset": takeover_onset,
     }
 
 

@@ -19,7 +19,8 @@ Stored keys, per chunk (``K`` chunks of one episode, see :func:`chunk_transition
 ``next_obs`` (float32, obs_dim), ``actions`` (float32, h x 7), ``action_mask`` (bool, h),
 ``reward``, ``discount`` (float32), ``terminal``, ``valid``, ``any_takeover`` (bool),
 ``n_steps``, ``chunk_start``, ``episode_id`` (int64), ``episode_accepted`` (bool: the chunk's
-episode ended in acceptance) and ``provenance_code`` (uint8, h): the
+episode ended in acceptance), ``episode_supervised`` and ``takeover_onset`` (bool, see
+:func:`chunk_transitions`) and ``provenance_code`` (uint8, h): the
 per-step ``provenance_mix`` strings as codes :data:`PROVENANCE_CODES` (TensorDicts hold no
 strings). With ``half_obs = n > 0`` the first ``n`` values of ``obs`` / ``next_obs`` are
 stored as float16 under ``obs_half`` / ``next_obs_half`` (the pixel track's cached feature
@@ -51,7 +52,7 @@ PROVENANCE_CODES = {"": 0, "demo": 1, "policy": 2, "takeover": 3}
 #: ``provenance_code`` in place of the ``provenance_mix`` strings).
 REPLAY_KEYS = ("obs", "actions", "action_mask", "reward", "next_obs", "discount", "terminal",
                "valid", "n_steps", "chunk_start", "any_takeover", "episode_id",
-               "episode_accepted", "episode_supervised", "provenance_code")
+               "episode_accepted", "episode_supervised", "takeover_onset", "provenance_code")
 
 
 def _check_count(name: str, value, minimum: int) -> int:
@@ -238,6 +239,9 @@ class ChunkReplay:
             if "episode_supervised" not in data:   # saved before the key existed
                 supervised = data["episode_id"][data["any_takeover"]]
                 data["episode_supervised"] = torch.isin(data["episode_id"], supervised)
+            if "takeover_onset" not in data:   # saved before the key existed, by a run whose
+                # agent could not read it; the takeover kinds it needs were not stored
+                data["takeover_onset"] = torch.zeros(n, dtype=torch.bool)
             self._buffer.extend(TensorDict(data, batch_size=[n]))
         self._buffer.writer.load_state_dict(dict(sd["writer"]))
         self.chunks_added = sd["chunks_added"]
