@@ -118,6 +118,7 @@ def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
     r = json.loads((out / "results.json").read_text())
     assert r["schema_version"] == 1 and r["method"]["name"] == "qcfql" and r["seed"] == 0
     assert r["profile"]["name"] == "smoke" and r["hyperparameters"]["h"] == 10
+    assert r["operator"] == "average" and r["operator_profile"]["wedge_steps"] == 2
     assert r["provenance"]["git_commit"] and "mujoco" in json.dumps(r["provenance"])
     steps = [c["env_steps"] for c in r["checkpoints"]]
     assert steps == [0, 200, 400]            # after Stage I, then every 200 steps

@@ -139,12 +139,12 @@ def _obs(depth=-0.3, lateral=0.0, tilt=0.0, vacuum=1.0, blocked=0.0, eef=(0.5, 0
     return o
 
 
-def _feed(env, sup, observations, seed=0):
+def _feed(env, sup, observations, seed=0, infos=None):
     env.reset(seed=seed)
     sup.reset(env, seed=seed)
     out = []
-    for o in observations:
-        d = sup.intervene(o, {})
+    for i, o in enumerate(observations):
+        d = sup.intervene(o, {} if infos is None else infos[i])
         out.append(None if d is None else d[1])
     return out
 
@@ -185,6 +185,10 @@ def test_wedging_cue_fires_after_latency(env):
     sup4 = InstallerSupervisor(_profile(lateral_threshold_mm=2.0))
     kinds = _feed(env, sup4, [_obs(depth=inside, lateral=0.003, blocked=0.002)] * 4)
     assert kinds == [None, "safety", "safety", "safety"] and sup4.events[0][1] == "wedging"
+    # A patient operator lets the policy work at the blocked entry for wedge_steps steps.
+    sup5 = InstallerSupervisor(_profile(lateral_threshold_mm=2.0, wedge_steps=6))
+    kinds = _feed(env, sup5, [_obs(depth=inside, lateral=0.003, blocked=0.002)] * 7)
+    assert kinds == [None] * 5 + ["safety"] * 2 and sup5.events[0] == (5, "wedging", "safety")
 
 
 def test_suction_lost_cue(env):
@@ -192,6 +196,15 @@ def test_suction_lost_cue(env):
     kinds = _feed(env, sup, [_obs(vacuum=1.0)] * 3 + [_obs(vacuum=0.0)] * 2)
     assert kinds == [None, None, None, "safety", "safety"]
     assert sup.events[0][1] == "suction_lost"
+    # Letting go of a panel already in the opening is the policy's call; a broken grip there,
+    # or letting go in front of the wall, is a cue.
+    inside, outside = ENTRY_DEPTH + 0.01, ENTRY_DEPTH - 0.05
+    for depth, loss, expected in ((inside, "commanded", None), (inside, "grip_break", "safety"),
+                                  (outside, "commanded", "safety")):
+        sup = InstallerSupervisor(_profile())
+        kinds = _feed(env, sup, [_obs(depth=depth, vacuum=1.0), _obs(depth=depth, vacuum=0.0)],
+                      infos=[{}, {"suction_loss": loss}])
+        assert kinds == [None, expected], (depth, loss)
     # Vacuum that was never on (B before acquisition) is not a loss.
     sup = InstallerSupervisor(_profile())
     assert _feed(env, sup, [_obs(vacuum=0.0)] * 5) == [None] * 5

@@ -62,6 +62,7 @@ from window_bench.harness.results import (LOSS_LOG_EVERY, RESULTS_SCHEMA, STEPS_
 from window_bench.harness.seeds import DEV_SEED0, MAX_SEED, eval_seeds
 from window_bench.harness.tracks import DEFAULT_TRACK, get_track
 from window_bench.installer.rollout import Rollout
+from window_bench.installer.operators import get_operator
 
 # Where scripts have imported them from; they live in agent.py and evaluation.py.
 from window_bench.harness.agent import obs_normalizer, parse_overrides  # noqa: F401
@@ -125,8 +126,6 @@ class Run:
         self._observed_demos = self._observed_demos_record = None
         if env_id not in window_bench.ENV_IDS:
             raise ValueError(f"unknown env {env_id!r}; registered: {', '.join(window_bench.ENV_IDS)}")
-        from window_bench.installer.operators import get_operator
-
         get_operator(operator)
         if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
             raise ValueError(f"--seed {seed!r}; allowed: an integer in 0..{MAX_SEED}")
@@ -570,7 +569,9 @@ class Run:
             "schema_version": RESULTS_SCHEMA, "method": self.method.as_dict(),
             "env_id": self.env_id, "profile": self.profile.as_dict(), "seed": self.seed,
             "track": self.track, "encoder": self.encoder,
-            "operator": self.operator, "acceptance_noise": self.acceptance_noise,
+            "operator": self.operator,
+            "operator_profile": get_operator(self.operator).as_dict(),   # its cues, as run
+            "acceptance_noise": self.acceptance_noise,
             "agent_config_overrides": self.agent_config,
             "hyperparameters": self.agent.hyperparameters(),
             "final": {"success_rate": final["success_rate"], "wilson95": final["wilson95"],

@@ -20,10 +20,13 @@ the paper's installer does: the panel's pose relative to the opening (``window_p
 ``window_rot_rel``), the contact proxy (realized minus commanded motion) and the vacuum
 state. Safety takeovers fire on
 
-* ``suction_lost`` - the vacuum flag drops while the panel is not seated;
+* ``suction_lost`` - the vacuum flag drops while the panel is not seated: the grip broke, or
+  the policy let go outside the opening (letting go of a panel already in the opening is the
+  policy's call: ``info["suction_loss"] == "commanded"``);
 * ``wedging`` - at the entry (the leading face within 5 mm of the wall face) or inside the
   opening, tilt or lateral offset past the operator's thresholds while the commanded motion
-  is blocked (contact proxy above ``BLOCKED_MIN``) for two steps: binding under asymmetric
+  is blocked (contact proxy above ``BLOCKED_MIN``) for the operator's ``wedge_steps``
+  steps: binding under asymmetric
   contact. A misaligned panel that still moves freely is left to the policy (earlier
   versions also fired on misalignment alone within 2 cm of the wall; that preempted a
   competent policy on most approaches, see CHANGELOG and ``docs/installer-loop.md``);
@@ -138,8 +141,9 @@ class InstallerSupervisor:
         self.at_pick_steps = 0
 
     # ------------------------------------------------------------------ cues
-    def _cue(self, f: dict) -> str | None:
-        """Update the histories with this observation; return the first cue that fires."""
+    def _cue(self, f: dict, info: dict) -> str | None:
+        """Update the histories with this observation (and the ``info`` of the step that led
+        to it); return the first cue that fires."""
         p = self.profile
         pos_rel = f["window_pos_rel"]
         depth = float(pos_rel @ S.INSERTION_AXIS)
@@ -149,7 +153,10 @@ class InstallerSupervisor:
         seated = depth > SEATED_DEPTH and lateral < 0.002
         zone = vac and depth > ENTRY_DEPTH - 0.005
 
-        lost = self.vacuum_was_on is True and not vac and not seated
+        # The policy letting go of a panel already in the opening is its call (the panel
+        # may still settle into the seat); a broken grip or a release elsewhere is a cue.
+        let_go_inside = info.get("suction_loss") == "commanded" and depth > ENTRY_DEPTH
+        lost = self.vacuum_was_on is True and not vac and not seated and not let_go_inside
         self.vacuum_was_on = vac
         if zone and not self.in_zone:
             self.entries += 1
@@ -177,7 +184,7 @@ class InstallerSupervisor:
 
         if lost:
             return "suction_lost"
-        if self.off_axis_steps >= 2:
+        if self.off_axis_steps >= p.wedge_steps:
             return "wedging"
         n = p.stall_steps
         if zone and not seated and len(self.depth_hist) > n:
@@ -245,7 +252,7 @@ class InstallerSupervisor:
                 return None
             return self._installer_action(obs)
 
-        cue = self._cue(f) if self.safety else None
+        cue = self._cue(f, info) if self.safety else None
         if cue is not None and self.pending is None:
             self.pending = (self.t + self.profile.reaction_latency_steps, cue)
         if self.pending is not None and self.t >= self.pending[0]:
