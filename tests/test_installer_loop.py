@@ -191,20 +191,33 @@ def test_wedging_cue_fires_after_latency(env):
     assert kinds == [None] * 5 + ["safety"] * 2 and sup5.events[0] == (5, "wedging", "safety")
 
 
+def test_hover_cue_counts_steps_in_front_of_the_opening_since_the_last_entry(env):
+    front, inside = ENTRY_DEPTH - 0.02, ENTRY_DEPTH + 0.01
+    sup = InstallerSupervisor(_profile(hover_steps=4, patience_steps=600))
+    kinds = _feed(env, sup, [_obs(depth=front)] * 3 + [_obs(depth=inside)]
+                  + [_obs(depth=front)] * 4)
+    assert kinds == [None] * 7 + ["safety"] and sup.events[0] == (7, "hover", "safety")
+    # Off in the shipped profiles but `attentive`, and far from the wall it never counts.
+    assert get_operator("average").hover_steps == 0 < get_operator("attentive").hover_steps
+    sup = InstallerSupervisor(_profile(hover_steps=4, patience_steps=600))
+    assert _feed(env, sup, [_obs(depth=ENTRY_DEPTH - 0.2)] * 8) == [None] * 8
+
+
 def test_suction_lost_cue(env):
     sup = InstallerSupervisor(_profile())
     kinds = _feed(env, sup, [_obs(vacuum=1.0)] * 3 + [_obs(vacuum=0.0)] * 2)
     assert kinds == [None, None, None, "safety", "safety"]
     assert sup.events[0][1] == "suction_lost"
-    # Letting go of a panel already in the opening is the policy's call; a broken grip there,
-    # or letting go in front of the wall, is a cue.
-    inside, outside = ENTRY_DEPTH + 0.01, ENTRY_DEPTH - 0.05
-    for depth, loss, expected in ((inside, "commanded", None), (inside, "grip_break", "safety"),
-                                  (outside, "commanded", "safety")):
+    # Letting go of a panel already in the opening is the policy's call, and so is a grip
+    # that breaks more than half-way in; a grip that breaks at the entry, or letting go in
+    # front of the wall, is a cue.
+    entry, deep, outside = ENTRY_DEPTH + 0.01, ENTRY_DEPTH + 0.06, ENTRY_DEPTH - 0.05
+    for depth, broke, expected in ((entry, False, None), (entry, True, "safety"),
+                                   (deep, True, None), (outside, False, "safety")):
         sup = InstallerSupervisor(_profile())
         kinds = _feed(env, sup, [_obs(depth=depth, vacuum=1.0), _obs(depth=depth, vacuum=0.0)],
-                      infos=[{}, {"suction_loss": loss}])
-        assert kinds == [None, expected], (depth, loss)
+                      infos=[{}, {"suction_failed": broke}])
+        assert kinds == [None, expected], (depth, broke)
     # Vacuum that was never on (B before acquisition) is not a loss.
     sup = InstallerSupervisor(_profile())
     assert _feed(env, sup, [_obs(vacuum=0.0)] * 5) == [None] * 5

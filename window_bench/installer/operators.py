@@ -49,8 +49,10 @@ class OperatorProfile:
     opening); ``max_takeover_steps`` (hand back regardless after this long);
     ``acquire_patience_steps`` (B: the tool within reach of the free panel this many steps
     without a latch is a failed acquisition - a takeover that picks the panel up and hands
-    back once it is lifted; 0: no such cue); ``seat_after_insertion_takeover`` (a takeover on
-    an insertion cue - wedging, stall, reinsertion - runs on through the retract and
+    back once it is lifted; 0: no such cue); ``hover_steps`` (the held panel this many steps
+    just in front of the wall face without going in is a non-progressing state; 0: no such
+    cue); ``seat_after_insertion_takeover`` (a takeover on
+    an insertion cue - wedging, stall, reinsertion, hover - runs on through the retract and
     reinsert to the seat instead of handing back in front of the opening).
     """
 
@@ -79,6 +81,7 @@ class OperatorProfile:
     max_takeover_steps: int = 200
     grasp_settle_steps: int = 0
     acquire_patience_steps: int = 0
+    hover_steps: int = 0
     seat_after_insertion_takeover: bool = False
 
     def __post_init__(self):
@@ -105,6 +108,7 @@ class OperatorProfile:
             "max_takeover_steps": (self.max_takeover_steps, 1, 600),
             "grasp_settle_steps": (self.grasp_settle_steps, 0, 50),
             "acquire_patience_steps": (self.acquire_patience_steps, 0, 600),
+            "hover_steps": (self.hover_steps, 0, 600),
         }
         for key, (value, lo, hi) in checks.items():
             if isinstance(value, bool) or not (lo <= value <= hi):
@@ -134,10 +138,11 @@ OPERATORS: dict[str, OperatorProfile] = {
         # blocked entry before calling it wedged or stalled (the paper's "prolonged
         # non-progressing states"; on a 90 % policy this cuts takeovers of episodes it
         # would finish alone from 8 to 3 of 36 and still catches all 4 failures,
-        # ``experiments/sanity/cue_precision.py``).
+        # ``experiments/sanity/cue_precision.py``), and takes over a panel circling in front
+        # of the opening for 10 s.
         OperatorProfile("attentive", grasp_settle_steps=10, acquire_patience_steps=20,
                         seat_after_insertion_takeover=True, wedge_steps=10, stall_steps=10,
-                        patience_steps=150),
+                        patience_steps=150, hover_steps=100),
         OperatorProfile(
             "novice", demo_speed=0.45, motion_noise=0.08, hesitation_rate=0.02,
             phase_hesitation=0.8, hesitation_max_steps=10, align_error_mm=2.0,

@@ -20,9 +20,10 @@ the paper's installer does: the panel's pose relative to the opening (``window_p
 ``window_rot_rel``), the contact proxy (realized minus commanded motion) and the vacuum
 state. Safety takeovers fire on
 
-* ``suction_lost`` - the vacuum flag drops while the panel is not seated: the grip broke, or
-  the policy let go outside the opening (letting go of a panel already in the opening is the
-  policy's call: ``info["suction_loss"] == "commanded"``);
+* ``suction_lost`` - the vacuum flag drops while the panel is not seated: the grip broke in
+  front of the wall or at the entry, or the policy let go there (a panel already in the opening
+  that the policy lets go of, or that comes off the cup more than half-way in, cannot fall:
+  acceptance judges it; ``info["suction_failed"]`` tells a broken grip from a release);
 * ``wedging`` - at the entry (the leading face within 5 mm of the wall face) or inside the
   opening, tilt or lateral offset past the operator's thresholds while the commanded motion
   is blocked (contact proxy above ``BLOCKED_MIN``) for the operator's ``wedge_steps``
@@ -33,6 +34,10 @@ state. Safety takeovers fire on
 * ``stall`` - inside the opening, insertion progress stalls while commanded motion is not
   realized, for ``stall_steps`` steps;
 * ``reinsertion`` - more than ``max_reinsertions`` entries into the opening;
+* ``hover`` (profiles with ``hover_steps``) - the held panel has spent that many steps within
+  ``HOVER_ZONE`` in front of the wall face since it last entered the opening: a policy
+  circling in front of the opening without going in (the demonstrator spends a median 30,
+  at most 80 steps there);
 * ``no_progress`` - no new best distance to the goal (the panel while not held, the seat
   while held) for ``patience_steps`` steps;
 * ``acquisition`` (profiles with ``acquire_patience_steps``) - the tool within
@@ -71,9 +76,11 @@ FLAT_SLICES = {k: slice(int(_OFFSETS[i]), int(_OFFSETS[i + 1])) for i, k in enum
 FLAT_DIM = int(_OFFSETS[-1])
 
 #: Safety cues, in the order they are checked.
-CUES = ("suction_lost", "wedging", "stall", "reinsertion", "acquisition", "no_progress")
-#: Cues raised while the panel is being inserted.
-INSERTION_CUES = ("wedging", "stall", "reinsertion")
+CUES = ("suction_lost", "wedging", "stall", "reinsertion", "hover", "acquisition",
+        "no_progress")
+#: Cues raised while the panel is being inserted (or about to be).
+INSERTION_CUES = ("wedging", "stall", "reinsertion", "hover")
+HOVER_ZONE = 0.05             # m in front of the wall face: "at the opening, not yet in"
 ACQUIRE_REACH = 0.08          # m between the tool and the free panel's centre: "at the pick"
 
 ENTRY_DEPTH = -S.STOP_DEPTH   # seat-relative depth at which the leading face meets the wall
@@ -139,6 +146,7 @@ class InstallerSupervisor:
         self.off_axis_steps = 0
         self.vacuum_was_on = None
         self.at_pick_steps = 0
+        self.front_steps = 0
 
     # ------------------------------------------------------------------ cues
     def _cue(self, f: dict, info: dict) -> str | None:
@@ -153,14 +161,22 @@ class InstallerSupervisor:
         seated = depth > SEATED_DEPTH and lateral < 0.002
         zone = vac and depth > ENTRY_DEPTH - 0.005
 
-        # The policy letting go of a panel already in the opening is its call (the panel
-        # may still settle into the seat); a broken grip or a release elsewhere is a cue.
-        let_go_inside = info.get("suction_loss") == "commanded" and depth > ENTRY_DEPTH
-        lost = self.vacuum_was_on is True and not vac and not seated and not let_go_inside
+        # A panel already in the opening that the policy lets go of, or that comes off the
+        # cup more than half-way in, cannot fall: acceptance judges it. A grip that breaks
+        # at the entry or in front of the wall, or a release there, is a cue.
+        inside = depth > ENTRY_DEPTH
+        deep = depth > ENTRY_DEPTH + S.STOP_DEPTH / 2
+        broke = bool(info.get("suction_failed", False))
+        lost = (self.vacuum_was_on is True and not vac and not seated
+                and not (inside and (deep or not broke)))
         self.vacuum_was_on = vac
         if zone and not self.in_zone:
             self.entries += 1
         self.in_zone = zone
+        if vac and ENTRY_DEPTH - HOVER_ZONE < depth <= ENTRY_DEPTH:
+            self.front_steps += 1
+        elif vac and depth > ENTRY_DEPTH:
+            self.front_steps = 0
         self.depth_hist.append(depth)
         self.blocked_hist.append(float(np.linalg.norm(f["contact_proxy"][:3])))
         # Wedging is a contact event: misaligned past the operator's thresholds AND the
@@ -194,6 +210,8 @@ class InstallerSupervisor:
                 return "stall"
         if self.entries > p.max_reinsertions:
             return "reinsertion"
+        if p.hover_steps and self.front_steps >= p.hover_steps:
+            return "hover"
         if p.acquire_patience_steps and self.at_pick_steps >= p.acquire_patience_steps:
             return "acquisition"
         if self.t - self.best_t >= p.patience_steps:
