@@ -182,6 +182,15 @@ class HILSERLConfig:
         lies outside ``[0, 1]``: ``target_range=[0,1]`` stops the bootstrap from carrying
         values the task cannot produce. Neither RLPD nor HIL-SERL clips (a named departure,
         measured in docs/baselines.md). None (default): no clip.
+    action_scale : (float, float)
+        HIL-SERL's per-task ``ACTION_SCALE``: the policy's unit action moves the TCP by
+        ``action_scale[0]`` times the env's 25 mm and rotates it by ``action_scale[1]`` times
+        its 5 deg per step. Executed actions (demonstrations, takeovers, the policy's own) are
+        stored in env units and divided by the scale (clipped to [-1, 1]) for learning.
+        HIL-SERL's insertion tasks use 10-15 mm and 0.06-0.1 rad
+        (``examples/experiments/ram_insertion/config.py:47``,
+        ``usb_pickup_insertion/config.py:51``): about ``(0.4, 0.7)`` here. ``(1, 1)``
+        (default): the env's own scale.
     offline_steps : int or None
         Stage I gradient steps (offline pretraining on D_demo only). None: the profile's
         ``offline_steps`` (the paper's protocol); 0: no Stage I, the learner starts with the
@@ -213,6 +222,7 @@ class HILSERLConfig:
     grasp_penalty: float = -0.02
     suction_loss_terminal: bool = False
     target_range: tuple[float, float] | None = None
+    action_scale: tuple[float, float] = (1.0, 1.0)
     offline_steps: int | None = None
 
     @property
@@ -291,6 +301,11 @@ class HILSERLConfig:
                 and 0.0 <= self.vacuum_epsilon <= 1.0):
             raise ValueError(f"vacuum_epsilon = {self.vacuum_epsilon!r} is not allowed: it "
                              f"must lie in [0, 1]")
+        scale = tuple(self.action_scale) if isinstance(self.action_scale, (list, tuple)) else ()
+        if not (len(scale) == 2 and all(real(v) and 0 < v <= 1 for v in scale)):
+            raise ValueError(f"action_scale = {self.action_scale!r} is not allowed: it must be "
+                             f"two numbers in (0, 1] (translation, rotation)")
+        object.__setattr__(self, "action_scale", tuple(float(v) for v in scale))
         if not (real(self.grasp_penalty) and self.grasp_penalty <= 0):
             raise ValueError(f"grasp_penalty = {self.grasp_penalty!r} is not allowed: it must "
                              f"be a finite number <= 0")
@@ -530,6 +545,10 @@ class HILSERLAgent(Agent):
                                "binary": BINARY_COMMANDS}.get(config.vacuum_head, ())
         self.discrete_vacuum = bool(self.grasp_commands)
         self.held_vacuum = config.vacuum_head == "held"
+        # HIL-SERL's ACTION_SCALE: translation, rotation, then the vacuum entry as it is.
+        t, r = config.action_scale
+        self._motion_scale = torch.tensor([t if i < 3 else r if i < 6 else 1.0
+                                           for i in range(action_dim)], dtype=torch.float32)
         if config.suction_loss_terminal and obs_dim != FLAT_OBS_DIM:
             raise ValueError(f"suction_loss_terminal = true needs the flat state observation "
                              f"(obs_dim {FLAT_OBS_DIM}, vacuum flag at index "
@@ -617,6 +636,7 @@ class HILSERLAgent(Agent):
             raw = torch.from_numpy(x).reshape(-1, self.obs_dim)
             o = self._normalize(raw)
             a = self.actor.mode(o) if deterministic else self.actor.sample(o, self._act_rng)[0]
+            a = a * self._motion_scale[: a.shape[-1]]
             if self.discrete_vacuum:
                 cmd = self._vacuum_command(o, deterministic)
                 vacuum = self._executed_vacuum(cmd, raw, vacuum_flag)
@@ -687,6 +707,9 @@ class HILSERLAgent(Agent):
         if actions.shape != (B, self.action_dim):
             raise ValueError(f"batch['actions'] has shape {tuple(batch['actions'].shape)}; "
                              f"expected ({B}, 1, {self.action_dim}) or ({B}, {self.action_dim})")
+        if self.config.action_scale != (1.0, 1.0):   # env units -> the policy's units
+            motion = (actions[:, :6] / self._motion_scale[:6]).clamp(-1.0, 1.0)
+            actions = torch.cat([motion, actions[:, 6:]], dim=-1)
         for key in ("obs", "next_obs"):
             if tuple(batch[key].shape) != (B, self.obs_dim):
                 raise ValueError(f"batch[{key!r}] has shape {tuple(batch[key].shape)}; "

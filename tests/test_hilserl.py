@@ -5,6 +5,7 @@ every size. One scripted demonstration on WindowInstall-A-v0 (flat observations)
 real data.
 """
 
+import dataclasses
 import io
 
 import gymnasium as gym
@@ -411,6 +412,27 @@ def test_held_vacuum_is_hilserl_fixed_gripper(demo, demo_td):
         agent.vacuum_command(obs[0])
     with pytest.raises(ValueError, match="held"):
         HILSERLAgent(OBS_DIM, action_dim=1, config=cfg)
+
+
+def test_action_scale_is_hilserl_per_task_action_scale(demo, demo_td):
+    """action_scale (HIL-SERL's ACTION_SCALE): the policy's unit action moves the TCP by the
+    scale times the env's unit; stored env-unit actions learn in the policy's units."""
+    base = HILSERLConfig(hidden=(16,), batch_size=32, vacuum_head="held")
+    scaled = dataclasses.replace(base, action_scale=(0.4, 0.5))
+    a1, a2 = HILSERLAgent(OBS_DIM, config=base, seed=3), HILSERLAgent(OBS_DIM, config=scaled, seed=3)
+    obs = demo.observations[:20]
+    u1, u2 = a1.act(obs, deterministic=True), a2.act(obs, deterministic=True)
+    np.testing.assert_allclose(u2[:, 0, :3], 0.4 * u1[:, 0, :3], rtol=1e-6)
+    np.testing.assert_allclose(u2[:, 0, 3:6], 0.5 * u1[:, 0, 3:6], rtol=1e-6)
+    assert np.all(u2[:, 0, 6] == VACUUM_ON)
+    b = demo_td[:32]
+    env_units = b["actions"][:, 0, :6].to(torch.float32)
+    learnt = a2._prepare(b)["actions"]
+    scale = torch.tensor([0.4] * 3 + [0.5] * 3)
+    torch.testing.assert_close(learnt, (env_units / scale).clamp(-1, 1))
+    for bad in ((0.0, 1.0), (0.5,), (1.5, 0.5)):
+        with pytest.raises(ValueError, match="action_scale"):
+            HILSERLConfig(action_scale=bad)
 
 
 def test_grasp_td_target_is_double_dqn():
