@@ -165,6 +165,13 @@ class QCFQLConfig:
     alone to 0 %; complete runs ended at 20 % (``"replay"``), 40-80 % (``"accepted"``) and
     80-85 % (``"accepted_no_takeover"``) (``docs/harness.md``)."""
 
+    distill_data: str = "batch"
+    """Where the student is distilled toward the teacher (Eq. 9): ``"batch"`` (paper,
+    reference), every row of the batch; ``"prior"`` (not in the paper), only the rows the
+    flow teacher learns from (``prior_data``): the demonstrations and the accepted online
+    episodes, not the states where the teacher extrapolates. The Q term still acts on every
+    row."""
+
     fine_pose_mm: float = 0.0
     """Fine pose features (not in the paper; state track): ``0`` off; else the networks see,
     beside the z-scored observation, ``tanh(window_pos_rel / fine_pose_mm)`` and
@@ -244,6 +251,9 @@ class QCFQLConfig:
                                   or not -1.0 <= value <= 1.0):
             raise ValueError(f"QCFQLConfig.takeover_value = {value!r} is not allowed: it must "
                              f"be null or a real number in [-1.0, 1.0]")
+        if self.distill_data not in ("batch", "prior"):
+            raise ValueError(f"QCFQLConfig.distill_data = {self.distill_data!r} is not "
+                             f"allowed: use 'batch' or 'prior'")
         if self.distill_reduction not in ("sum", "mean"):
             raise ValueError(f"QCFQLConfig.distill_reduction = {self.distill_reduction!r} is "
                              f"not allowed: use 'sum' or 'mean'")
@@ -634,7 +644,13 @@ class QCFQLAgent(Agent):
         target = self.teacher_actions(obs, z) if target is None else target
         u = self.student(obs, z)
         sq = (u - target).square()
-        distill = sq.sum(-1).mean() if self.config.distill_reduction == "sum" else sq.mean()
+        per_row = sq.sum(-1) if self.config.distill_reduction == "sum" else sq.mean(-1)
+        keep = b.get("prior_mask") if self.config.distill_data == "prior" else None
+        if keep is None:
+            distill = per_row.mean()
+        else:   # only where the teacher learnt: the rows with a step the prior trains on
+            rows = (keep > 0).any(-1).to(per_row.dtype)
+            distill = (per_row * rows).sum() / rows.sum().clamp_min(1.0)
         q_pi = self.critic(self.critic_input(obs, u.clamp(-1.0, 1.0)), frozen=True).mean(0)
         q_loss = -q_pi.mean()
         if self.config.normalize_q_loss:

@@ -389,6 +389,25 @@ def test_distillation_is_squared_l2_over_the_whole_chunk():
         assert (out["loss"] - out["q_loss"]).item() == pytest.approx(300 * expected, rel=1e-5)
 
 
+def test_distill_data_prior_distils_only_where_the_teacher_learns():
+    h, B = 3, 4
+    batch = make_batch(B, h)
+    batch["provenance_code"] = torch.tensor([[1] * h, [2] * h, [2] * h, [1] * h],
+                                            dtype=torch.uint8)
+    z = torch.zeros(B, h * A)
+    losses = {}
+    for data in ("batch", "prior"):
+        agent = QCFQLAgent(OBS, A, tiny(h=h, prior_data="demo", distill_data=data), seed=0)
+        b = agent.prepare(batch)
+        target = agent.teacher_actions(b["obs"], z) + torch.tensor([0.1, 0.3, 0.3, 0.1])[:, None]
+        losses[data] = agent.actor_loss(b, z=z, target=target.detach())["distill"].item()
+        per_row = (agent.student(b["obs"], z) - target).square().sum(-1).detach()
+    assert losses["batch"] == pytest.approx(per_row.mean().item(), rel=1e-5)
+    assert losses["prior"] == pytest.approx(per_row[[0, 3]].mean().item(), rel=1e-5)
+    with pytest.raises(ValueError, match="distill_data = 'online'"):
+        QCFQLConfig(distill_data="online")
+
+
 def test_actor_loss_reaches_the_student_only():
     agent = QCFQLAgent(OBS, A, tiny(), seed=0)
     b = agent.prepare(make_batch(8, 2))
