@@ -954,10 +954,12 @@ def _state_config(state: dict) -> dict:
     """The config of a :meth:`HILSERLAgent.state_dict`; states saved before the grasp critic
     and the observation clip were added are what they were: Gaussian vacuum, no clip; and
     those saved before the three-way grasp critic (no ``grasp_penalty``) had no toggle
-    penalty, and their grasp critic, if any, is the two-way one (``"binary"``)."""
+    penalty, and their grasp critic, if any, is the two-way one (``"binary"``); those saved
+    before ``action_scale`` acted in the env's units."""
     config = {"vacuum_head": "gaussian", "obs_clip": None, "vacuum_epsilon": 0.0,
               "offline_steps": None, "suction_loss_terminal": False, "target_range": None,
-              **state["config"]}
+              "action_scale": (1.0, 1.0), **state["config"]}
+    config["action_scale"] = tuple(config["action_scale"])
     if "grasp_penalty" not in config:
         config["grasp_penalty"] = 0.0
         if config["vacuum_head"] == "discrete":
