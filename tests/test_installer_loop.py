@@ -214,10 +214,17 @@ def test_suction_lost_cue(env):
     entry, deep, outside = ENTRY_DEPTH + 0.01, ENTRY_DEPTH + 0.06, ENTRY_DEPTH - 0.05
     for depth, broke, expected in ((entry, False, None), (entry, True, "safety"),
                                    (deep, True, None), (outside, False, "safety")):
-        sup = InstallerSupervisor(_profile())
+        sup = InstallerSupervisor(_profile(suction_cue_in_opening=False))
         kinds = _feed(env, sup, [_obs(depth=depth, vacuum=1.0), _obs(depth=depth, vacuum=0.0)],
                       infos=[{}, {"suction_failed": broke}])
         assert kinds == [None, expected], (depth, broke)
+        # The shipped profiles but `attentive` keep the cue wherever the panel is.
+        sup = InstallerSupervisor(_profile())
+        kinds = _feed(env, sup, [_obs(depth=depth, vacuum=1.0), _obs(depth=depth, vacuum=0.0)],
+                      infos=[{}, {"suction_failed": broke}])
+        assert kinds == [None, "safety"], (depth, broke)
+    assert get_operator("average").suction_cue_in_opening
+    assert not get_operator("attentive").suction_cue_in_opening
     # Vacuum that was never on (B before acquisition) is not a loss.
     sup = InstallerSupervisor(_profile())
     assert _feed(env, sup, [_obs(vacuum=0.0)] * 5) == [None] * 5

@@ -62,8 +62,12 @@ class Shadow:
 def parse_variant(text: str, base) -> tuple[str, object]:
     fields = {}
     for item in text.split(","):
-        key, _, value = item.partition("=")
-        fields[key.strip()] = json.loads(value)
+        key, sep, value = item.partition("=")
+        try:
+            fields[key.strip()] = json.loads(value)
+        except ValueError:
+            raise ValueError(f"{item!r} is not field=value with a JSON value "
+                             f"(e.g. wedge_steps=10)") from None
     return text, dataclasses.replace(base, name=text, **fields)
 
 
@@ -79,8 +83,11 @@ def main(argv=None) -> int:
     if not 1 <= args.episodes <= 1000:
         ap.error(f"--episodes {args.episodes} is outside [1, 1000]")
     torch.set_num_threads(1)
-    base = get_operator(args.operator)
-    variants = dict([(args.operator, base)] + [parse_variant(v, base) for v in args.variant])
+    try:
+        base = get_operator(args.operator)
+        variants = dict([(args.operator, base)] + [parse_variant(v, base) for v in args.variant])
+    except (ValueError, TypeError) as e:   # unknown profile or field, bad value
+        ap.error(f"--operator/--variant: {e}")
     agent_cls, state, meta = load_policy_file(args.policy)
     agent = agent_cls.from_policy_state_dict(state)
     env = make_training_env(meta["env_id"], None, obs_mode="flat", max_episode_steps=600)

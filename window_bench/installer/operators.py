@@ -53,7 +53,10 @@ class OperatorProfile:
     just in front of the wall face without going in is a non-progressing state; 0: no such
     cue); ``seat_after_insertion_takeover`` (a takeover on
     an insertion cue - wedging, stall, reinsertion, hover - runs on through the retract and
-    reinsert to the seat instead of handing back in front of the opening).
+    reinsert to the seat instead of handing back in front of the opening);
+    ``suction_cue_in_opening`` (false: a panel already in the opening that the policy lets go
+    of, or that comes off the cup more than half-way in, is not a ``suction_lost`` cue; it
+    cannot fall, and acceptance judges it).
     """
 
     name: str
@@ -83,6 +86,7 @@ class OperatorProfile:
     acquire_patience_steps: int = 0
     hover_steps: int = 0
     seat_after_insertion_takeover: bool = False
+    suction_cue_in_opening: bool = True
 
     def __post_init__(self):
         checks = {
@@ -114,9 +118,10 @@ class OperatorProfile:
             if isinstance(value, bool) or not (lo <= value <= hi):
                 raise ValueError(f"OperatorProfile {self.name!r}: {key} = {value!r} is outside "
                                  f"[{lo}, {hi}]")
-        if not isinstance(self.seat_after_insertion_takeover, bool):
-            raise ValueError(f"OperatorProfile {self.name!r}: seat_after_insertion_takeover = "
-                             f"{self.seat_after_insertion_takeover!r} must be true or false")
+        for key in ("seat_after_insertion_takeover", "suction_cue_in_opening"):
+            if not isinstance(getattr(self, key), bool):
+                raise ValueError(f"OperatorProfile {self.name!r}: {key} = "
+                                 f"{getattr(self, key)!r} must be true or false")
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -142,7 +147,7 @@ OPERATORS: dict[str, OperatorProfile] = {
         # of the opening for 10 s.
         OperatorProfile("attentive", grasp_settle_steps=10, acquire_patience_steps=20,
                         seat_after_insertion_takeover=True, wedge_steps=10, stall_steps=10,
-                        patience_steps=150, hover_steps=100),
+                        patience_steps=150, hover_steps=100, suction_cue_in_opening=False),
         OperatorProfile(
             "novice", demo_speed=0.45, motion_noise=0.08, hesitation_rate=0.02,
             phase_hesitation=0.8, hesitation_max_steps=10, align_error_mm=2.0,

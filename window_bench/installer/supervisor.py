@@ -20,10 +20,10 @@ the paper's installer does: the panel's pose relative to the opening (``window_p
 ``window_rot_rel``), the contact proxy (realized minus commanded motion) and the vacuum
 state. Safety takeovers fire on
 
-* ``suction_lost`` - the vacuum flag drops while the panel is not seated: the grip broke in
-  front of the wall or at the entry, or the policy let go there (a panel already in the opening
-  that the policy lets go of, or that comes off the cup more than half-way in, cannot fall:
-  acceptance judges it; ``info["suction_failed"]`` tells a broken grip from a release);
+* ``suction_lost`` - the vacuum flag drops while the panel is not seated (with the operator's
+  ``suction_cue_in_opening`` false, not for a panel already in the opening that the policy
+  lets go of or that comes off the cup more than half-way in: it cannot fall, and acceptance
+  judges it; ``info["suction_failed"]`` tells a broken grip from a release);
 * ``wedging`` - at the entry (the leading face within 5 mm of the wall face) or inside the
   opening, tilt or lateral offset past the operator's thresholds while the commanded motion
   is blocked (contact proxy above ``BLOCKED_MIN``) for the operator's ``wedge_steps``
@@ -167,8 +167,9 @@ class InstallerSupervisor:
         inside = depth > ENTRY_DEPTH
         deep = depth > ENTRY_DEPTH + S.STOP_DEPTH / 2
         broke = bool(info.get("suction_failed", False))
-        lost = (self.vacuum_was_on is True and not vac and not seated
-                and not (inside and (deep or not broke)))
+        judged_by_acceptance = (not p.suction_cue_in_opening
+                                and inside and (deep or not broke))
+        lost = self.vacuum_was_on is True and not vac and not seated and not judged_by_acceptance
         self.vacuum_was_on = vac
         if zone and not self.in_zone:
             self.entries += 1
