@@ -57,6 +57,7 @@ from window_bench.data.steplog import ACTION_DIM, EpisodeLog
 from window_bench.envs.task import FAILURE_MODE_NAMES, STAGES
 from window_bench.harness.agent import (Agent, AgentSpec, generator_state, load_optimizer_state,
                                         module_state, optimizer_state, with_overrides)
+from window_bench.installer.supervisor import FLAT_DIM, fine_pose_features
 
 #: Number of leading floats of the ``flat`` observation that belong to the robot: the
 #: ``robot0_*`` entries of ``window_bench.envs.env.STATE_KEYS`` (7 + 7 + 3 + 4 + 1 + 18).
@@ -116,6 +117,14 @@ class ACTConfig:
     """Train with the CVAE (ACT): the latent ``z`` from the encoder, which sees the target
     actions. ``False`` trains the policy with ``z = 0``, as it acts (no encoder, no KL):
     ACT's "w/o CVAE" ablation (Zhao et al. 2023, Sec. 5)."""
+    fine_pose_mm: float = 0.0
+    """Fine pose features (not in ACT; state track, as QC-FQL's option of the same name):
+    ``0`` off; else the object-state token also reads ``tanh(window_pos_rel / fine_pose_mm)``
+    and ``tanh(window_rot_rel / fine_pose_deg)``
+    (:func:`window_bench.installer.supervisor.fine_pose_features`), which resolve the
+    panel's millimetres around the seat where the z-score of whole episodes does not."""
+    fine_pose_deg: float = 1.0
+    """Angle scale of the fine rotation features (used when ``fine_pose_mm > 0``)."""
     loss: str = "l1"
     """Reconstruction term: ``"l1"`` (ACT) or ``"l2"`` (squared error, a departure measured in
     docs/act.md "Why ACT fails where flow BC succeeds")."""
@@ -147,6 +156,11 @@ class ACTConfig:
         if not (_is_real(self.obs_clip) and self.obs_clip >= 0):
             raise ValueError(f"ACTConfig.obs_clip = {self.obs_clip!r} is not allowed: must be "
                              f"0 (no clipping) or a finite number > 0")
+        for name, lo, hi in (("fine_pose_mm", 0.0, 1000.0), ("fine_pose_deg", 0.0, 90.0)):
+            v = getattr(self, name)
+            if not (_is_real(v) and lo <= v <= hi) or (name == "fine_pose_deg" and v == 0):
+                raise ValueError(f"ACTConfig.{name} = {v!r} is not allowed: must lie in "
+                                 f"{'[' if name == 'fine_pose_mm' else '('}{lo}, {hi}]")
         for name, hi in (("lr", 1.0), ("std_floor", math.inf)):
             v = getattr(self, name)
             if not (_is_real(v) and 0.0 < v <= hi):
@@ -172,8 +186,8 @@ _INFERENCE_ONLY = ("temporal_ensembling", "ensemble_coeff", "offline_steps")
 
 
 #: Named configurations. ``paper``: the reference sizes. ``cpu``: reduced for the 2-core
-#: machine (measured step times and the choice of steps in docs/act.md). ``smoke``: tiny,
-#: for tests and CI.
+#: machine (measured step times and the choice of steps in docs/act.md); ``long`` the same
+#: (ACT never interacts). ``smoke``: tiny, for tests and CI.
 ACT_PROFILES: dict[str, ACTConfig] = {
     "paper": ACTConfig(),
     # Acting weights (policy_state_dict) 0.22 M parameters, a 0.90 MB policy file; the
@@ -184,6 +198,8 @@ ACT_PROFILES: dict[str, ACTConfig] = {
     "smoke": ACTConfig(d_model=32, n_heads=2, ff=64, enc_layers=1, vae_enc_layers=1,
                        dec_layers=1, latent_dim=4, dropout=0.0, lr=1e-3, offline_steps=100),
 }
+# ACT learns from D_demo only: the interaction budget of `long` does not reach it.
+ACT_PROFILES["long"] = ACT_PROFILES["cpu"]
 
 
 # ----------------------------------------------------------------------------- losses
@@ -454,6 +470,9 @@ class ACTAgent(Agent):
         _check_int("obs_dim", obs_dim, 1)
         _check_int("action_dim", action_dim, 1)
         _check_int("seed", seed, 0)
+        if config.fine_pose_mm and obs_dim != FLAT_DIM:
+            raise ValueError(f"ACTConfig.fine_pose_mm = {config.fine_pose_mm} needs the flat "
+                             f"state observation ({FLAT_DIM} values); obs_dim = {obs_dim}")
         if config.robot_dim > obs_dim:
             raise ValueError(f"ACTConfig.robot_dim = {config.robot_dim} is not allowed for "
                              f"obs_dim = {obs_dim}: must lie in [0, {obs_dim}]")
@@ -462,7 +481,9 @@ class ACTAgent(Agent):
         torch_gen = torch.Generator().manual_seed(self.seed)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(torch.randint(2**62, (1,), generator=torch_gen)))
-            self.model = ACTModel(self.obs_dim, self.action_dim, config)
+            # the fine pose features join the end of the observation: the object-state token
+            self.model = ACTModel(self.obs_dim + (6 if config.fine_pose_mm else 0),
+                                  self.action_dim, config)
             self._torch_rng = torch.get_rng_state()
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr,
                                            weight_decay=config.weight_decay)
@@ -520,11 +541,16 @@ class ACTAgent(Agent):
         }
 
     def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
-        """Z-scored observations, clipped to ``+-config.obs_clip`` when it is set."""
+        """Z-scored observations, clipped to ``+-config.obs_clip`` when it is set; with
+        ``config.fine_pose_mm`` the 6 fine pose features follow."""
         norm = self._need_norm()
         obs_n = (obs - norm["obs_mean"]) / norm["obs_std"]
         clip = self.config.obs_clip
-        return obs_n.clamp(-clip, clip) if clip else obs_n
+        obs_n = obs_n.clamp(-clip, clip) if clip else obs_n
+        if not self.config.fine_pose_mm:
+            return obs_n
+        fine = fine_pose_features(obs, self.config.fine_pose_mm, self.config.fine_pose_deg)
+        return torch.cat([obs_n, fine.to(obs_n.dtype)], dim=-1)
 
     def _need_norm(self) -> dict:
         if self.norm is None:

@@ -47,7 +47,7 @@ from torchrl.modules import MLP
 
 from window_bench.envs.env import VACUUM_THRESHOLD
 from window_bench.data.replay import PROVENANCE_CODES
-from window_bench.installer.supervisor import FLAT_DIM, FLAT_SLICES
+from window_bench.installer.supervisor import FLAT_DIM, fine_pose_features
 from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
                                         module_state, optimizer_state, plain, with_overrides)
 
@@ -492,9 +492,8 @@ class QCFQLAgent(Agent):
         z = ((obs - self.obs_mean) / self.obs_std).clamp(-OBS_CLIP, OBS_CLIP)
         if not self.config.fine_pose_mm:
             return z
-        pos = obs[..., FLAT_SLICES["window_pos_rel"]] / (self.config.fine_pose_mm / 1000.0)
-        rot = obs[..., FLAT_SLICES["window_rot_rel"]] / np.deg2rad(self.config.fine_pose_deg)
-        return torch.cat([z, torch.tanh(pos), torch.tanh(rot)], dim=-1)
+        fine = fine_pose_features(obs, self.config.fine_pose_mm, self.config.fine_pose_deg)
+        return torch.cat([z, fine.to(z.dtype)], dim=-1)
 
     def _noise(self, batch: int) -> torch.Tensor:
         return torch.randn(batch, self.chunk_dim, generator=self.update_generator)

@@ -107,6 +107,34 @@ def test_obs_clip_bounds_the_policy_input_and_batches_match_single_chunks():
     assert np.allclose(batch, np.stack([agent.predict_chunk(o) for o in obs]), atol=1e-6)
 
 
+def test_fine_pose_features_join_the_object_token_and_resolve_millimetres():
+    from window_bench.installer.supervisor import FLAT_SLICES
+    eps = [synthetic_episode(23, 0)]
+    agent = ACTAgent(OBS_DIM, config=replace(SMOKE, fine_pose_mm=10.0, fine_pose_deg=2.0), seed=0)
+    agent.fit_normalizer(eps)
+    assert agent.model.robot_dim == FLAT_ROBOT_DIM and agent.model.env_dim == OBS_DIM - 40 + 6
+    obs = eps[0].observations[:2].astype(np.float32).copy()
+    pos = FLAT_SLICES["window_pos_rel"]
+    obs[:, pos] = 0.0
+    obs[1, pos.start] = 0.003                      # 3 mm sideways
+    x = agent.normalize_obs(torch.from_numpy(obs))
+    assert x.shape == (2, OBS_DIM + 6)
+    # the z-score barely moves (std ~1 m here); the fine feature moves by tanh(0.3)
+    assert abs(float(x[1, pos.start] - x[0, pos.start])) < 0.01
+    assert float(x[1, OBS_DIM] - x[0, OBS_DIM]) == pytest.approx(math.tanh(0.3), abs=1e-6)
+    assert not np.allclose(agent.predict_chunk(obs[0]), agent.predict_chunk(obs[1]))
+    # acting weights alone rebuild the same policy
+    rebuilt = ACTAgent.from_policy_state_dict(agent.policy_state_dict())
+    assert np.array_equal(rebuilt.predict_chunk(obs[1]), agent.predict_chunk(obs[1]))
+    agent.train_offline(eps, 2)                    # trains on the widened token
+    with pytest.raises(ValueError, match=r"fine_pose_mm = 10.0 needs the flat state"):
+        ACTAgent(20, config=replace(SMOKE, robot_dim=0, fine_pose_mm=10.0))
+    with pytest.raises(ValueError, match=r"fine_pose_deg = 0 .* \(0.0, 90.0\]"):
+        ACTConfig(fine_pose_deg=0)
+    with pytest.raises(ValueError, match=r"fine_pose_mm = -1 .* \[0.0, 1000.0\]"):
+        ACTConfig(fine_pose_mm=-1)
+
+
 def test_without_the_cvae_training_never_runs_the_encoder_and_has_no_kl():
     eps = [synthetic_episode(23, 0), synthetic_episode(17, 1)]
     agent = ACTAgent(OBS_DIM, config=replace(SMOKE, cvae=False), seed=0)

@@ -101,6 +101,22 @@ def test_registry_has_the_table_1_rows():
     assert PROFILES["paper"].utd == 2 and PROFILES["paper"].checkpoint_every == 3_000
 
 
+def test_the_long_profile_is_the_papers_budget_with_the_cpu_learner():
+    from window_bench.harness.methods import AGENTS
+    long, cpu, paper = PROFILES["long"], PROFILES["cpu"], PROFILES["paper"]
+    assert (long.budget_steps, long.warm_steps) == (paper.budget_steps, paper.warm_steps)
+    assert long.budget_steps / 36_000 == 3.0 and long.checkpoint_every / 36_000 == 0.1
+    assert (long.hidden, long.utd, long.offline_steps, long.batch_size) == (
+        cpu.hidden, cpu.utd, cpu.offline_steps, cpu.batch_size)
+    assert len(long.reductions) >= 3
+    # every agent kind builds its config for every profile (none is keyed to a missing name)
+    for kind in AGENTS:
+        cls = AGENTS.lookup(kind)
+        for profile in PROFILES.values():
+            cls.make_config(10, profile, {})
+        assert cls.make_config(10, long, {}) == cls.make_config(10, cpu, {})
+
+
 def test_cli_rejects_unknown_names(capsys):
     with pytest.raises(SystemExit):
         main(["run", "--method", "nope", "--out", "x"])

@@ -1,5 +1,5 @@
 """The methods registry: the rows of the paper's Table 1 as named methods with their
-component flags, and the run profiles (``paper``, ``cpu``, ``smoke``).
+component flags, and the run profiles (``paper``, ``cpu``, ``long``, ``smoke``).
 
 ``bench methods`` prints Table 1 from :data:`METHODS`. A method names the agent that learns
 (``qcfql``; HIL-SERL, ACT and SAC come with their own agents) and which protocol
@@ -147,6 +147,17 @@ PROFILES: dict[str, Profile] = {p.name: p for p in (
                         "UTD 1 gradient step per env step instead of 2",
                         "MLPs 2 x 256 instead of 4 x 512 (about 6x faster per update here)",
                         "M = 20 evaluation rollouts per checkpoint instead of 100")),
+    # The paper's interaction budget with the `cpu` learner: what 3.0 h buys on one core.
+    Profile("long", budget_steps=108_000, warm_steps=10_000, offline_steps=20_000, utd=1,
+            checkpoint_every=3_600, eval_episodes=20, eval_workers=2, n_demos=50,
+            hidden=(256, 256), batch_size=256,
+            reductions=("offline pretraining 20,000 gradient steps instead of 1,000,000 (the "
+                        "`cpu` Stage I; 24,000 more demo-only updates do not raise B's dev "
+                        "success)",
+                        "UTD 1 gradient step per env step instead of 2",
+                        "MLPs 2 x 256 instead of 4 x 512 (about 6x faster per update here)",
+                        "M = 20 evaluation rollouts per checkpoint (every 0.1 simulated h) "
+                        "instead of 100")),
     Profile("smoke", budget_steps=400, warm_steps=100, offline_steps=20, utd=0.05,
             checkpoint_every=200, eval_episodes=2, eval_workers=2, n_demos=2,
             hidden=(32, 32), batch_size=16, max_episode_steps=100,
