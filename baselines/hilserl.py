@@ -69,7 +69,7 @@ from window_bench.data.steplog import PROVENANCES, EpisodeLog
 from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
                                         module_state, optimizer_state, plain, with_overrides)
 from window_bench.envs.env import VACUUM_THRESHOLD
-from window_bench.installer.supervisor import FLAT_DIM, FLAT_SLICES
+from window_bench.installer.supervisor import FLAT_DIM, FLAT_SLICES, fine_pose_features
 
 _ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
 #: Batch keys the learner reads (``valid`` is optional and defaults to all True; the
@@ -195,6 +195,12 @@ class HILSERLConfig:
         Stage I gradient steps (offline pretraining on D_demo only). None: the profile's
         ``offline_steps`` (the paper's protocol); 0: no Stage I, the learner starts with the
         online phase on 1:1 demo/online batches (HIL-SERL's and RLPD's own protocol).
+    fine_pose_mm, fine_pose_deg : float
+        Fine pose features (not in HIL-SERL; state track; QC-FQL's and ACT's option of the
+        same name): ``fine_pose_mm = 0`` (default) off; else the actor and the critics also
+        read ``tanh(window_pos_rel / fine_pose_mm)`` and ``tanh(window_rot_rel /
+        fine_pose_deg)`` (:func:`window_bench.installer.supervisor.fine_pose_features`), the
+        panel's millimetres around the seat that the z-score of whole episodes flattens.
     """
 
     hidden: tuple[int, ...] = (256, 256)
@@ -224,6 +230,8 @@ class HILSERLConfig:
     target_range: tuple[float, float] | None = None
     action_scale: tuple[float, float] = (1.0, 1.0)
     offline_steps: int | None = None
+    fine_pose_mm: float = 0.0
+    fine_pose_deg: float = 1.0
 
     @property
     def h(self) -> int:
@@ -306,6 +314,12 @@ class HILSERLConfig:
             raise ValueError(f"action_scale = {self.action_scale!r} is not allowed: it must be "
                              f"two numbers in (0, 1] (translation, rotation)")
         object.__setattr__(self, "action_scale", tuple(float(v) for v in scale))
+        if not (real(self.fine_pose_mm) and 0 <= self.fine_pose_mm <= 1000):
+            raise ValueError(f"fine_pose_mm = {self.fine_pose_mm!r} is not allowed: it must "
+                             f"lie in [0, 1000] (0: off)")
+        if not (real(self.fine_pose_deg) and 0 < self.fine_pose_deg <= 90):
+            raise ValueError(f"fine_pose_deg = {self.fine_pose_deg!r} is not allowed: it must "
+                             f"lie in (0, 90]")
         if not (real(self.grasp_penalty) and self.grasp_penalty <= 0):
             raise ValueError(f"grasp_penalty = {self.grasp_penalty!r} is not allowed: it must "
                              f"be a finite number <= 0")
@@ -557,6 +571,10 @@ class HILSERLAgent(Agent):
             raise ValueError(f"action_dim = {action_dim} is not allowed with vacuum_head = "
                              f"{config.vacuum_head!r}: it needs at least one pose dimension "
                              f"and the vacuum")
+        if config.fine_pose_mm and obs_dim != FLAT_OBS_DIM:
+            raise ValueError(f"fine_pose_mm = {config.fine_pose_mm} needs the flat state "
+                             f"observation ({FLAT_OBS_DIM} values); obs_dim = {obs_dim}")
+        in_dim = obs_dim + (6 if config.fine_pose_mm else 0)   # what the networks read
         # With the grasp critic or a held vacuum, the actor and the critic ensemble see the
         # pose dimensions only (HIL-SERL's critic takes actions[..., :-1]).
         self.pose_dim = (action_dim - 1 if self.discrete_vacuum or self.held_vacuum
@@ -564,9 +582,9 @@ class HILSERLAgent(Agent):
 
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.actor = TanhGaussianActor(obs_dim, self.pose_dim, config)
-            self.critic = CriticEnsemble(obs_dim, self.pose_dim, config)
-            self.grasp_critic = (GraspCritic(obs_dim, config, len(self.grasp_commands))
+            self.actor = TanhGaussianActor(in_dim, self.pose_dim, config)
+            self.critic = CriticEnsemble(in_dim, self.pose_dim, config)
+            self.grasp_critic = (GraspCritic(in_dim, config, len(self.grasp_commands))
                                  if self.discrete_vacuum else None)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.target_grasp_critic = (copy.deepcopy(self.grasp_critic).requires_grad_(False)
@@ -613,7 +631,11 @@ class HILSERLAgent(Agent):
     def _normalize(self, obs: torch.Tensor) -> torch.Tensor:
         z = (obs - self.obs_mean) / self.obs_std
         clip = self.config.obs_clip
-        return z if clip is None else z.clamp(-clip, clip)
+        z = z if clip is None else z.clamp(-clip, clip)
+        if not self.config.fine_pose_mm:
+            return z
+        fine = fine_pose_features(obs, self.config.fine_pose_mm, self.config.fine_pose_deg)
+        return torch.cat([z, fine.to(z.dtype)], dim=-1)
 
     # ------------------------------------------------------------------ acting
     def act(self, obs, deterministic: bool = False, vacuum_flag=None) -> np.ndarray:

@@ -110,6 +110,8 @@ def params(module):
     ({"target_range": [0.0]}, "target_range"),
     ({"target_range": [0.0, float("inf")]}, "target_range"),
     ({"target_range": 1.0}, "target_range"),
+    ({"fine_pose_mm": -1.0}, r"fine_pose_mm = -1.0 .* \[0, 1000\]"),
+    ({"fine_pose_deg": 0.0}, r"fine_pose_deg = 0.0 .* \(0, 90\]"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -146,6 +148,26 @@ def test_act_shapes_range_and_determinism(demo):
     np.testing.assert_array_equal(twin.act(one), a1)
     with pytest.raises(ValueError, match="obs has shape"):
         agent.act(np.zeros(OBS_DIM + 1))
+
+
+def test_fine_pose_features_reach_actor_and_critics(demo, demo_td):
+    from window_bench.installer.supervisor import FLAT_SLICES
+    mean, std = obs_normalizer([demo])
+    cfg = dataclasses.replace(SMALL, fine_pose_mm=10.0, fine_pose_deg=2.0)
+    agent = HILSERLAgent(OBS_DIM, config=cfg, seed=0, obs_mean=mean, obs_std=std)
+    obs = np.repeat(demo.observations[-1:].astype(np.float32), 2, axis=0)
+    obs[1, FLAT_SLICES["window_pos_rel"].start] += 0.002        # 2 mm sideways
+    x = agent._normalize(torch.from_numpy(obs))
+    assert x.shape == (2, OBS_DIM + 6)
+    assert float((x[1, OBS_DIM] - x[0, OBS_DIM]).abs()) > 0.1   # tanh(0.2)-scale step
+    assert not np.array_equal(agent.act(obs, deterministic=True)[0],
+                              agent.act(obs, deterministic=True)[1])
+    agent.update(demo_td[:8])                                  # trains on the widened input
+    twin = HILSERLAgent.from_state_dict(agent.state_dict())
+    np.testing.assert_array_equal(twin.act(obs, deterministic=True),
+                                  agent.act(obs, deterministic=True))
+    with pytest.raises(ValueError, match="fine_pose_mm = 10.0 needs the flat state"):
+        HILSERLAgent(20, config=cfg)
 
 
 def test_agent_rejects_bad_normalization():
