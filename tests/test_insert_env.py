@@ -12,6 +12,7 @@ from window_bench.envs.env import mat_to_rotvec
 from window_bench.installer.scripted import ScriptedInstaller
 
 INSERT = "WindowInstall-Insert-v0"
+COMPLIANT = "WindowInstall-Insert-Compliant-v0"
 HOLD = np.array([0, 0, 0, 0, 0, 0, 1.0], np.float32)
 
 
@@ -58,9 +59,9 @@ def test_panel_starts_latched_in_front_of_the_wall_face(make_env):
         assert np.linalg.norm(u.panel_pose()[0] - pos) < 0.002
 
 
-@pytest.mark.parametrize("seed", range(5))
-def test_scripted_installer_seats_it_within_the_limit(seed, make_env):
-    env = make_env(INSERT)
+@pytest.mark.parametrize("env_id, seed", [(INSERT, s) for s in range(5)] + [(COMPLIANT, 0)])
+def test_scripted_installer_seats_it_within_the_limit(env_id, seed, make_env):
+    env = make_env(env_id)
     ctrl = ScriptedInstaller(env, 1.0, 0.5, seed=seed)
     obs, _ = env.reset(seed=seed)
     for t in range(200):
@@ -82,3 +83,34 @@ def test_zero_action_does_not_succeed_and_truncates_at_200(make_env):
         if truncated:
             break
     assert truncated and t == 200
+
+
+def test_the_compliant_arm_pushes_gently_and_undirected_actions_keep_the_grip(make_env):
+    """Same start, same random actions: the stiff arm breaks the grip against the buck, the
+    compliant one (pose error clipped at 1.5 mm / 0.5 deg) moves slower and keeps it."""
+    broke, speed = {}, {}
+    for env_id in (INSERT, COMPLIANT):
+        env = make_env(env_id)
+        u = env.unwrapped
+        rng = np.random.default_rng(0)
+        broke[env_id], travel = 0, []
+        for ep in range(4):
+            env.reset(seed=1000 + ep)
+            for t in range(60):
+                a = HOLD.copy()
+                a[:6] = np.clip(rng.normal(0.0, 0.3, 6), -1.0, 1.0)
+                p0 = u.panel_pose()[0]
+                _, _, terminated, truncated, info = env.step(a)
+                travel.append(np.linalg.norm(u.panel_pose()[0] - p0))
+                if info["suction_failed"]:
+                    broke[env_id] += 1
+                    break
+                if terminated or truncated:
+                    break
+        speed[env_id] = float(np.median(travel))
+    assert broke[INSERT] >= 3 and broke[COMPLIANT] == 0, broke
+    # the spring's error is clipped: at most 1.5 mm x kp / kd = 3 mm of travel per step
+    assert speed[COMPLIANT] < 0.0035 < speed[INSERT], speed
+    gains = make_env(COMPLIANT).unwrapped.osc.gains
+    assert gains[8] == pytest.approx(0.0015) and gains[9] == pytest.approx(np.deg2rad(0.5))
+    assert not make_env(INSERT).unwrapped.osc.gains[8:].any()   # off on every other id

@@ -37,14 +37,14 @@ def _rot(axis, angle):
 
 # ----------------------------------------------------------------------------- registry
 def _episode_steps(env_id):
-    return 200 if env_id == "WindowInstall-Insert-v0" else 600
+    return 200 if env_id.startswith("WindowInstall-Insert") else 600
 
 
 def test_ids_registered():
-    assert len(IDS) == 9
+    assert len(IDS) == 10
     assert set(IDS) == {f"WindowInstall-{e}{s}-v0" for e in "AB"
                         for s in ("", "-Panel40x40", "-Panel60x60", "-Panel60x40")} \
-        | {"WindowInstall-Insert-v0"}
+        | {"WindowInstall-Insert-v0", "WindowInstall-Insert-Compliant-v0"}
     for env_id in IDS:
         assert env_id in gym.registry
         assert gym.spec(env_id).max_episode_steps == _episode_steps(env_id)
@@ -320,6 +320,8 @@ def test_render_rgb_array(make_env):
     ({"obs_mode": "rgb"}, "obs_mode='rgb'"),
     ({"render_mode": "human"}, "render_mode='human'"),
     ({"image_size": 8}, "image_size=8 is outside [16, 512]"),
+    ({"compliance_mm": -1.0}, "compliance_mm=-1.0 is outside [0, 100] (0: off)"),
+    ({"compliance_deg": 95}, "compliance_deg=95 is outside [0, 90] (0: off)"),
 ])
 def test_bad_constructor_arguments_name_the_value_and_range(kwargs, needle):
     from window_bench.envs.env import WindowInstallEnv

@@ -36,6 +36,10 @@ OOD_PANELS = {"Panel40x40": (0.4, 0.4), "Panel60x60": (0.6, 0.6), "Panel60x40": 
 #: front of the opening; a short task, hence its episode limit.
 INSERT_ENV_ID = "WindowInstall-Insert-v0"
 INSERT_EPISODE_STEPS = 200
+#: The same with a compliant arm: the controller clips its pose error at 1.5 mm and 0.5 deg,
+#: so the arm pushes gently against the buck (as HIL-SERL's impedance controller does) and
+#: undirected actions rarely break the cup's grip.
+INSERT_COMPLIANT_ENV_ID = "WindowInstall-Insert-Compliant-v0"
 
 
 def _register_id(env_id: str, step_limit: int, **kwargs) -> str:
@@ -56,6 +60,10 @@ def _register() -> list[str]:
     ids.append(_register_id(INSERT_ENV_ID, INSERT_EPISODE_STEPS, experiment="Insert",
                             panel_width=0.5, panel_height=0.5,
                             max_episode_steps=INSERT_EPISODE_STEPS))
+    ids.append(_register_id(INSERT_COMPLIANT_ENV_ID, INSERT_EPISODE_STEPS, experiment="Insert",
+                            panel_width=0.5, panel_height=0.5,
+                            max_episode_steps=INSERT_EPISODE_STEPS, compliance_mm=1.5,
+                            compliance_deg=0.5))
     return ids
 
 

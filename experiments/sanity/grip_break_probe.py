@@ -1,14 +1,16 @@
 """How soon does undirected exploration break the cup's grip on the insertion task?
 
-Random Gaussian actions (clipped to [-1, 1], vacuum on) on ``WindowInstall-Insert-v0``, 10
-episodes per setting, seeds 1000-1009 (neither training, dev nor test seeds): the episodes in
+Random Gaussian actions (clipped to [-1, 1], vacuum on) on ``WindowInstall-Insert-v0`` (or
+``--env WindowInstall-Insert-Compliant-v0``, the compliant arm), 10 episodes per setting, seeds 1000-1009 (neither training, dev nor test seeds): the episodes in
 which the grip breaks at the holding limits, the step it breaks, and whether the panel then
 touches the buck (opening lining, bevels, wall). One process, one thread, about a minute.
 
-    python experiments/sanity/grip_break_probe.py
+    python experiments/sanity/grip_break_probe.py [--env WindowInstall-Insert-Compliant-v0]
 """
 
 from __future__ import annotations
+
+import argparse
 
 import gymnasium as gym
 import numpy as np
@@ -19,8 +21,13 @@ SETTINGS = (("all", 1.0, [1] * 6), ("all", 0.3, [1] * 6), ("all", 0.1, [1] * 6),
             ("translation", 1.0, [1, 1, 1, 0, 0, 0]), ("rotation", 1.0, [0, 0, 0, 1, 1, 1]))
 
 
-def main() -> None:
-    env = gym.make("WindowInstall-Insert-v0").unwrapped
+INSERT_IDS = ("WindowInstall-Insert-v0", "WindowInstall-Insert-Compliant-v0")
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--env", default=INSERT_IDS[0], choices=INSERT_IDS)
+    env = gym.make(p.parse_args(argv).env).unwrapped
     rng = np.random.default_rng(0)
     for name, std, mask in SETTINGS:
         steps, contact = [], 0

@@ -33,6 +33,11 @@ class OSCGains:
     kd_null: float = 40.0             # 1/s: damps internal (self-motion) of the redundant arm
     vel_limit_margin: float = 0.85    # governor and brakes act up to this fraction of 1.92 rad/s
     vel_limit_gain: float = 60.0      # 1/s, per unit joint inertia
+    # Compliance (0 = off): the spring's pose error is clipped to this norm, so the force the
+    # arm pushes with against an obstacle is bounded (HIL-SERL's impedance controller clips
+    # its translational error at 1.6-7.5 mm, ram_insertion/config.py COMPLIANCE_PARAM).
+    pos_error_clip: float = 0.0       # m
+    rot_error_clip: float = 0.0       # rad
 
     def as_array(self) -> np.ndarray:
         return np.array([
@@ -40,6 +45,7 @@ class OSCGains:
             self.kp_rot, 2 * self.damping_ratio * np.sqrt(self.kp_rot),
             self.kp_null, self.kd_null,
             self.vel_limit_margin * MAX_JOINT_VELOCITY, self.vel_limit_gain,
+            self.pos_error_clip, self.rot_error_clip,
         ])
 
 
@@ -147,6 +153,10 @@ def osc_torque(jacp, jacr, M, bias, q, qd, pos, mat, target_pos, target_mat,
     rot_norm = np.sqrt(err[3] ** 2 + err[4] ** 2 + err[5] ** 2)
     lin_cap = 0.4 * kd / kp
     rot_cap = 1.0 * kdr / kpr
+    if gains[8] > 0.0:      # compliance: a tighter clip of the spring's error
+        lin_cap = min(lin_cap, gains[8])
+    if gains[9] > 0.0:
+        rot_cap = min(rot_cap, gains[9])
     lin_s = 1.0 if lin_norm <= lin_cap else lin_cap / lin_norm
     rot_s = 1.0 if rot_norm <= rot_cap else rot_cap / rot_norm
     acc = np.empty(6)

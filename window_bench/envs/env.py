@@ -146,7 +146,13 @@ class WindowInstallEnv(gym.Env):
                  panel_mass: float | None = None, obs_mode: str = "state",
                  render_mode: str | None = None, image_size: int = 128,
                  max_episode_steps: int = MAX_EPISODE_STEPS,
-                 terminate_on_acceptance: bool = True, info_strings: bool = False):
+                 terminate_on_acceptance: bool = True, info_strings: bool = False,
+                 compliance_mm: float = 0.0, compliance_deg: float = 0.0):
+        for name, v, hi in (("compliance_mm", compliance_mm, 100.0),
+                            ("compliance_deg", compliance_deg, 90.0)):
+            if (isinstance(v, bool) or not isinstance(v, (int, float, np.floating))
+                    or not 0.0 <= float(v) <= hi):
+                raise ValueError(f"{name}={v!r} is outside [0, {hi:g}] (0: off)")
         if obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode={obs_mode!r}; allowed: {OBS_MODES}")
         if render_mode not in (None, "rgb_array"):
@@ -176,7 +182,10 @@ class WindowInstallEnv(gym.Env):
         self._target_pos = self.cfg.seated_center
         self._target_mat = S.SEATED_PANEL_MAT
         self._postures()
-        self.osc = OSC(self.model, sc.tcp_site, sc.tool_body, OSCGains(), q_null=self.q_null)
+        self.osc = OSC(self.model, sc.tcp_site, sc.tool_body,
+                       OSCGains(pos_error_clip=float(compliance_mm) / 1000.0,
+                                rot_error_clip=float(np.deg2rad(compliance_deg))),
+                       q_null=self.q_null)
         self._renderer = None
         self._render_renderer = None
         # Set only by PixelFeatures(observe_every > 1) around a step whose observation no one
