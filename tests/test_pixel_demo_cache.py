@@ -127,6 +127,8 @@ def test_the_key_follows_the_encoder_the_demos_and_the_env(demos, backbone):
     reseeded = [dataclasses.replace(demos[0], seed=demos[0].seed + 1), demos[1]]
     assert key != cache_key(key_material(reseeded, ENV, backbone))
     assert key != cache_key(key_material(demos, "WindowInstall-B-v0", backbone))
+    assert key == cache_key(key_material(demos, ENV, backbone, "paper"))
+    assert key != cache_key(key_material(demos, ENV, backbone, "seat"))  # other cameras
     assert set(key_material(demos, ENV, backbone)) >= {
         "demos_sha256", "encoder_sha256", "layout", "code_sha256", "mujoco", "torch"}
 

@@ -446,6 +446,12 @@ def _add_pairs(spec: mujoco.MjSpec, cfg: SceneConfig) -> dict[str, list[str]]:
     return groups
 
 
+#: The seat cameras: name and which corner of the opening (sign of x, sign of z).
+SEAT_CAMERAS = (("seat_top_right", 1.0, 1.0), ("seat_bottom_left", -1.0, -1.0))
+SEAT_CAMERA_OFFSET = np.array([0.118, 0.25, 0.118])  # out from its corner (x, along the wall normal, z), in m; x and z signed by the corner
+SEAT_CAMERA_FOVY = 25.0
+
+
 def _add_cameras(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
     wb = spec.worldbody
     # A marker body at the opening centre for cameras to track (the wall body sits at the
@@ -467,6 +473,29 @@ def _add_cameras(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
     overview.targetbody = "robot0_link2"
     overview.pos = [1.9, 1.5, 1.6]
     overview.fovy = 50
+    # Two fixed seat cameras for the pixel track's "seat" camera set (window_bench.pixels.
+    # cameras); the env's own views (wrist, side) never render them. Each sits
+    # SEAT_CAMERA_OFFSET out from a corner of the opening (diagonally outward, clear of the
+    # panel's path, and in front of the wall) and looks at that corner, so the gap between
+    # the panel and the buck fills its view.
+    half_w, half_h = cfg.opening[0] / 2, cfg.opening[1] / 2
+    for name, sx, sz in SEAT_CAMERAS:
+        corner = np.array([OPENING_CENTER_X + sx * half_w, -WALL_Y, OPENING_CENTER_Z + sz * half_h])
+        pos = corner + np.array([sx, 1.0, sz]) * SEAT_CAMERA_OFFSET
+        cam = wb.add_camera()
+        cam.name = name
+        cam.pos = pos
+        cam.quat = _quat_from_mat(_look_at(corner - pos))
+        cam.fovy = SEAT_CAMERA_FOVY
+
+
+def _look_at(forward: np.ndarray) -> np.ndarray:
+    """Rotation (columns: the camera's x, y, z in world) of a camera looking along
+    ``forward`` with the world's z up in its image (MuJoCo cameras look along their -z)."""
+    f = forward / np.linalg.norm(forward)
+    x = np.cross(f, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(-f, x), -f])
 
 
 def build_spec(cfg: SceneConfig) -> mujoco.MjSpec:

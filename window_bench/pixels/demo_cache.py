@@ -74,8 +74,10 @@ def _replay_sha256(demos) -> str:
     return h.hexdigest()
 
 
-def key_material(demos, env_id: str, backbone) -> dict:
+def key_material(demos, env_id: str, backbone, cameras: str = "paper") -> dict:
     """Everything the re-observed observations depend on (see the module docstring)."""
+    from window_bench.pixels.cameras import camera_names
+
     import mujoco
     import torch
 
@@ -85,7 +87,8 @@ def key_material(demos, env_id: str, backbone) -> dict:
     return {"format_version": FORMAT_VERSION, "env_id": env_id, "episodes": len(demos),
             "demos_sha256": demos_sha256(demos), "replay_sha256": _replay_sha256(demos),
             "encoder_sha256": backbone_sha256(backbone),
-            "layout": {"views": list(VIEWS), "image_size": IMAGE_SIZE, "obs_dim": OBS_DIM,
+            "layout": {"views": list(VIEWS), "cameras": list(camera_names(cameras)),
+                       "image_size": IMAGE_SIZE, "obs_dim": OBS_DIM,
                        "feature_values": FEATURE_VALUES, "feature_dtype": "float16",
                        "proprio_dim": PROPRIO_DIM, "proprio_dtype": "float32"},
             "code_sha256": _source_sha256(*_CODE), "mujoco": mujoco.__version__,
@@ -178,14 +181,16 @@ class PixelDemoCache(Stage1Cache):
 
 
 def cached_pixel_demos(demos: list, env_id: str, backbone, cache_dir: str | os.PathLike,
-                       progress: bool = False) -> tuple[list, dict]:
+                       progress: bool = False, cameras: str = "paper") -> tuple[list, dict]:
     """``pixel_demos(demos, env_id, backbone)`` through the cache in ``cache_dir``, and the
     record a results file keeps: the key, whether it was a hit, and the seconds it took
-    (``lock_wait_s``: waiting for another run computing the same entry)."""
+    (``lock_wait_s``: waiting for another run computing the same entry). ``cameras``: the
+    camera set (:mod:`window_bench.pixels.cameras`), part of the key."""
     from window_bench.pixels import track   # looked up at call time: tests replace it
 
     t0 = time.perf_counter()
-    material = key_material(demos, env_id, backbone)
+    material = key_material(demos, env_id, backbone, cameras)
+    extra = {} if cameras == "paper" else {"cameras": cameras}
     key = cache_key(material)
     try:
         cache = PixelDemoCache(cache_dir)
@@ -195,7 +200,7 @@ def cached_pixel_demos(demos: list, env_id: str, backbone, cache_dir: str | os.P
     if not writable:   # e.g. a read-only demos directory: the run goes on, uncached
         print(f"pixel demo cache: {cache_dir} cannot be written; re-observing the demos "
               f"without a cache", file=sys.stderr)
-        out = track.pixel_demos(demos, env_id, backbone, progress)
+        out = track.pixel_demos(demos, env_id, backbone, progress, **extra)
         return out, {"key": key, "cache_hit": False, "cache_dir": None,
                      "wall_clock_s": round(time.perf_counter() - t0, 2), "lock_wait_s": 0.0}
     t_lock = time.perf_counter()
@@ -204,7 +209,7 @@ def cached_pixel_demos(demos: list, env_id: str, backbone, cache_dir: str | os.P
         out = cache.load(key, demos)
         hit = out is not None
         if not hit:
-            out = track.pixel_demos(demos, env_id, backbone, progress)
+            out = track.pixel_demos(demos, env_id, backbone, progress, **extra)
             cache.store(key, out, material, time.perf_counter() - t0 - waited)
     wall = time.perf_counter() - t0 - waited
     if progress and hit:

@@ -23,6 +23,11 @@ episode (terminated or truncated). Any other step returns :data:`UNOBSERVED`-fil
 never touches the physics, so the episode, every observation on the grid, every action and
 reward are bit-identical to ``observe_every=1`` (tested); only the work differs. The default,
 1, observes every step, as step-wise learners (h = 1) need.
+
+**Camera set** (``cameras``, :mod:`window_bench.pixels.cameras`). ``"paper"`` (default)
+encodes the env's own wrist and side views. ``"seat"`` encodes the two fixed seat cameras on
+the opening's corners in their place (same layout: two 512 x 4 x 4 maps + proprioception);
+the env is then told not to render its own views, and the wrapper renders the seat cameras.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from window_bench.pixels.cameras import DEFAULT_CAMERAS, camera_names, render_views
 from window_bench.pixels.encoder import OBS_DIM, VIEWS, ResNet10
 
 #: The value of every entry of an observation the wrapper skipped (``observe_every > 1``).
@@ -54,7 +60,9 @@ class PixelFeatures(gym.ObservationWrapper):
     ``observe_every``: observe only on the grid of a chunked policy (module docstring).
     """
 
-    def __init__(self, env: gym.Env, backbone: ResNet10, observe_every: int = 1):
+    def __init__(self, env: gym.Env, backbone: ResNet10, observe_every: int = 1,
+                 cameras: str = DEFAULT_CAMERAS):
+        camera_names(cameras)       # a bad set name fails here, in one line
         if (isinstance(observe_every, bool) or not isinstance(observe_every, (int, np.integer))
                 or observe_every < 1):
             raise ValueError(f"observe_every={observe_every!r}; allowed: an integer >= 1 "
@@ -72,22 +80,30 @@ class PixelFeatures(gym.ObservationWrapper):
             raise ValueError("PixelFeatures: the backbone must be frozen "
                              "(window_bench.pixels.encoder.frozen)")
         self.backbone = backbone
+        self.cameras = cameras
         self.observe_every = int(observe_every)
         self.observation_space = spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float32)
         self._t = 0
 
     def observation(self, observation: dict) -> np.ndarray:
+        if self.cameras != DEFAULT_CAMERAS:
+            observation = {**observation, **dict(zip(VIEWS, render_views(self.env, self.cameras)))}
         return encode_views(self.backbone, observation)
 
     def reset(self, *, seed=None, options=None):
         self._t = 0
-        return super().reset(seed=seed, options=options)
+        base = self.env.unwrapped
+        base._skip_views = self.cameras != DEFAULT_CAMERAS   # its own views: not encoded
+        try:
+            return super().reset(seed=seed, options=options)
+        finally:
+            base._skip_views = False
 
     def step(self, action):
         self._t += 1
         skip = self._t % self.observe_every != 0
         base = self.env.unwrapped
-        base._skip_views = skip
+        base._skip_views = skip or self.cameras != DEFAULT_CAMERAS
         try:
             obs, reward, terminated, truncated, info = self.env.step(action)
         finally:
@@ -95,13 +111,19 @@ class PixelFeatures(gym.ObservationWrapper):
         if not skip:
             return self.observation(obs), reward, terminated, truncated, info
         if terminated or truncated:     # the episode's last state s_T: always observed
-            return self.observation(base._observation()), reward, terminated, truncated, info
+            base._skip_views = self.cameras != DEFAULT_CAMERAS
+            try:
+                obs = base._observation()
+            finally:
+                base._skip_views = False
+            return self.observation(obs), reward, terminated, truncated, info
         return np.full(OBS_DIM, UNOBSERVED), reward, terminated, truncated, info
 
 
 def make_pixel_env(env_id: str, backbone: ResNet10, observe_every: int = 1,
-                   **kwargs) -> PixelFeatures:
+                   cameras: str = DEFAULT_CAMERAS, **kwargs) -> PixelFeatures:
     """``gym.make(env_id, obs_mode="pixels", **kwargs)`` wrapped in :class:`PixelFeatures`:
     the pixel track's counterpart of the harness's ``obs_mode="flat"`` env."""
+    extra = {} if cameras == DEFAULT_CAMERAS else {"cameras": cameras}
     return PixelFeatures(gym.make(env_id, obs_mode="pixels", **kwargs), backbone,
-                         observe_every=observe_every)
+                         observe_every=observe_every, **extra)

@@ -165,15 +165,16 @@ class StateSupervisor:
         return getattr(self.supervisor, name)
 
 
-def pixel_demos(demos: list, env_id: str, backbone, progress: bool = False) -> list:
+def pixel_demos(demos: list, env_id: str, backbone, progress: bool = False,
+                cameras: str = "paper") -> list:
     """The state-track demonstrations re-observed on the pixel track: each episode's executed
     actions replayed from its seed under :class:`PixelFeatures`. The env is deterministic and
     rendering does not touch the physics, so the replay is the same episode; rewards and
     terminations are checked step by step and a divergence is an error, never a silently
-    different dataset."""
+    different dataset. ``cameras``: the camera set (:mod:`window_bench.pixels.cameras`)."""
     from tqdm import tqdm
 
-    env = make_track_env(env_id, "pixels", backbone)
+    env = make_track_env(env_id, "pixels", backbone, cameras=cameras)
     out = []
     for ep in tqdm(demos, desc="pixel demos", unit="demo", disable=not progress):
         obs, _ = env.reset(seed=int(ep.seed))
