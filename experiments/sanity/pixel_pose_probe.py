@@ -24,18 +24,20 @@ episodes with a deliberate seat-estimate error (``--align-error-mm``), a quarter
 (the demonstrations are aligned to under 1 mm there, too little spread to probe).
 
 Which features the offset probe reads (the demonstration probe reads the pixel track's own
-cached maps, so these need ``--demos`` left out):
+cached maps, so the first four need ``--demos`` left out):
 
 * ``--cameras seat``: the two fixed seat cameras on opposite corners of the opening
   (``window_bench.pixels.cameras``) instead of the paper's wrist and side views;
 * ``--layer layer3`` / ``layer2``: an earlier, finer map of the backbone;
 * ``--readout keypoints``: per channel the spatial-softmax position instead of the map;
+* ``--align-error-deg D``: the seat estimate is also off by up to D degrees per axis;
 * ``--weights PATH``: another backbone (default: the shipped in-domain one).
 
     python experiments/sanity/pixel_pose_probe.py --offset-episodes 96 --cameras seat
 
-With any of these the episodes run on a state env and only the steps near the seat are
-rendered; results go to ``pixel_pose_probe_<env>_<options>.json``.
+With any of the first four the episodes run on a state env and only the steps near the seat
+are rendered. Without ``--demos`` results go to ``pixel_pose_probe_<env>_<options>.json``
+(``..._offset.json`` with no options).
 
 It reads the harness's demonstrations and their pixel re-observation from the pixel demo
 cache (recomputed, about 4 min, if the cache is missing); results go to
