@@ -47,8 +47,8 @@ FORMAT_VERSION = 1
 #: The cache's directory inside the demonstrations' directory (``--demos``, or the run's
 #: ``demos/``) unless a run is given another one.
 DEFAULT_SUBDIR = "pixel_cache"
-_CODE = ("window_bench.pixels.features", "window_bench.pixels.encoder", "window_bench.pixels.cameras",
-         "window_bench.pixels.track", "window_bench.envs.env", "window_bench.envs.scene",
+_CODE = ("window_bench.pixels.features", "window_bench.pixels.encoder",
+         "window_bench.pixels.cameras", "window_bench.pixels.track", "window_bench.envs.env", "window_bench.envs.scene",
          "window_bench.envs.task", "window_bench.envs.controller", "window_bench.envs.wrappers")
 
 
