@@ -48,8 +48,9 @@ FORMAT_VERSION = 1
 #: ``demos/``) unless a run is given another one.
 DEFAULT_SUBDIR = "pixel_cache"
 _CODE = ("window_bench.pixels.features", "window_bench.pixels.encoder",
-         "window_bench.pixels.cameras", "window_bench.pixels.track", "window_bench.envs.env", "window_bench.envs.scene",
-         "window_bench.envs.task", "window_bench.envs.controller", "window_bench.envs.wrappers")
+         "window_bench.pixels.cameras", "window_bench.pixels.track", "window_bench.envs.env",
+         "window_bench.envs.scene", "window_bench.envs.task", "window_bench.envs.controller",
+         "window_bench.envs.wrappers")
 
 
 def backbone_sha256(backbone) -> str:
