@@ -82,5 +82,5 @@ def test_registries_name_the_choices_and_load_no_learner_on_import():
     with pytest.raises(ValueError,
                        match=r"^unknown agent kind 'bc'; registered: qcfql, .*act-pixels$"):
         agent_class("bc")
-    with pytest.raises(ValueError, match=r"^track='rgb'; allowed: state, pixels$"):
+    with pytest.raises(ValueError, match=r"^track='rgb'; allowed: state, pixels, pixels-seat$"):
         TRACKS.lookup("rgb")

@@ -844,9 +844,9 @@ def test_pixel_run_resumes_after_a_kill_as_if_never_killed(tmp_path, monkeypatch
 
     real_init = features.PixelFeatures.__init__
 
-    def every_step(self, env, backbone, observe_every=1):
+    def every_step(self, env, backbone, observe_every=1, cameras="paper"):
         assert observe_every == 10              # what the harness asks for, h of `qcfql`
-        real_init(self, env, backbone, observe_every=1)
+        real_init(self, env, backbone, observe_every=1, cameras=cameras)
 
     monkeypatch.setattr(features.PixelFeatures, "__init__", every_step)
     eager = run(tmp_path / "eager").train()
@@ -940,3 +940,48 @@ def test_episode_log_marks_unobserved_rows_and_still_refuses_corrupt_ones():
         with pytest.raises(ValueError, match="s_0 and s_T must be observed"):
             log(cut).validate()
 
+
+
+# ---------------------------------------------------------------- the seat-camera track
+def test_bench_run_on_the_seat_camera_track(tmp_path, monkeypatch, demos_root):
+    """``Run(track="pixels-seat")``: the pixel agents on the two seat cameras. The demos are
+    re-observed through the seat cameras (their own cache entry), the policy files name the
+    camera set, evaluation renders those cameras, and results.json records the track and
+    the cameras; a policy state naming an unknown camera set is refused in one line."""
+    import json
+
+    from window_bench.harness import methods
+    from window_bench.harness.files import load_state
+    from window_bench.harness.run import Run
+    from window_bench.harness.tracks import get_track
+    from window_bench.pixels import track as T
+
+    monkeypatch.setitem(methods.PROFILES, "smoke", dataclasses.replace(
+        methods.PROFILES["smoke"], eval_episodes=1, max_episode_steps=30))
+    seen = []
+    real = T.pixel_demos
+
+    def observed(eps, env_id, backbone, progress=False, cameras="paper"):
+        seen.append(cameras)
+        return real(eps, env_id, backbone, progress, cameras=cameras)
+
+    monkeypatch.setattr(T, "pixel_demos", observed)
+    out = tmp_path / "seat"
+    r = Run("qcfql-offline", ENV, "smoke", 0, out, track="pixels-seat", demos=demos_root,
+            progress=False, eval_workers=1)
+    assert r.method.agent == "qcfql-pixels"
+    res = r.train()
+    saved = json.loads((out / "results.json").read_text())
+    assert res["track"] == saved["track"] == "pixels-seat" and seen == ["seat"]
+    assert saved["encoder"]["cameras"] == "seat"
+    policy, _ = load_state(out / "policies" / "step_0000000.safetensors", "policy")
+    assert policy["cameras"] == "seat"
+    env = get_track("pixels").eval_env(ENV, policy, observe_every=10)
+    assert env.cameras == "seat"
+    env.close()
+    old = {k: v for k, v in policy.items() if k != "cameras"}   # saved before camera sets
+    env = get_track("pixels").eval_env(ENV, old)
+    assert env.cameras == "paper"
+    env.close()
+    with pytest.raises(ValueError, match=r"camera set '\.\./x'; allowed: paper, seat"):
+        get_track("pixels").eval_env(ENV, {**policy, "cameras": "../x"})

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from window_bench.harness.methods import register_agent, register_preset
 from window_bench.harness.tracks import Track, register_track
-from window_bench.pixels.track import PixelTrack
+from window_bench.pixels.track import PixelTrack, SeatPixelTrack
 
 
 # ---------------------------------------------------------------------------- agents
@@ -79,6 +79,7 @@ register_agent("act-pixels", load=_act_pixels)
 # ---------------------------------------------------------------------------- tracks
 register_track(Track())         # state: the privileged 52-float observation
 register_track(PixelTrack())    # pixels: the paper's two RGB views + proprioception
+register_track(SeatPixelTrack())   # pixels-seat: two cameras on the opening's corners
 
 
 # ---------------------------------------------------------------------------- presets

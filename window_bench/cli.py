@@ -507,8 +507,9 @@ def build_parser() -> argparse.ArgumentParser:
     from window_bench.harness.tracks import DEFAULT_TRACK, TRACKS
 
     r.add_argument("--track", choices=list(TRACKS), default=DEFAULT_TRACK,
-                   help="observation track: the privileged state, or the paper's two RGB views "
-                        "+ proprioception through the frozen ResNet-10 (docs/pixels.md)")
+                   help="observation track: the privileged state; the paper's two RGB views "
+                        "+ proprioception through the frozen ResNet-10 (pixels); the same with "
+                        "two cameras on the opening's corners (pixels-seat) (docs/pixels.md)")
     r.add_argument("--encoder-weights", metavar="PATH",
                    help="pixel track: backbone weights (safetensors, timm resnet10t names); "
                         "default: the shipped in-domain encoder")

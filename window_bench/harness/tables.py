@@ -443,7 +443,9 @@ TRACK_DESCRIPTIONS = {
     "state": f"{get_track('state').label} (the 52-float simulator state, with the panel's exact "
              "pose relative to the seat: not what the paper's agents observe)",
     "pixels": "the paper's observation: wrist and side RGB views (128 x 128) through the frozen "
-              "ResNet-10, and 18 proprioceptive values (see [the pixel track](../pixels.md))"}
+              "ResNet-10, and 18 proprioceptive values (see [the pixel track](../pixels.md))",
+    "pixels-seat": "the pixel track with two fixed cameras on opposite corners of the opening "
+                   "in place of the wrist and side views (see [the pixel track](../pixels.md))"}
 
 
 def _mark(key: RowKey) -> str:

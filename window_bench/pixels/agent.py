@@ -35,6 +35,7 @@ import torch
 
 from window_bench.harness.agent import (Agent, AgentSpec, load_optimizer_state, module_state,
                                         optimizer_state)
+from window_bench.pixels.cameras import DEFAULT_CAMERAS, saved_cameras
 from window_bench.pixels.encoder import (FEATURE_VALUES, OBS_DIM, PROPRIO_DIM, VIEW_FEATURES,
                                          VIEWS, PixelObsEncoder)
 
@@ -60,11 +61,13 @@ class PixelAgent(Agent):
 
     Subclasses set :attr:`inner` and implement ``__init__(config, seed, proprio_mean,
     proprio_std)``, :meth:`config_of` and :meth:`update`. ``encoder_weights``: the backbone's
-    weights file (``None``: the shipped default), kept in the saved states so that an
-    evaluation worker builds the same observation."""
+    weights file (``None``: the shipped default), and ``cameras``: the camera set
+    (:mod:`window_bench.pixels.cameras`), kept in the saved states so that an evaluation
+    worker builds the same observation."""
 
     track = "pixels"
     encoder_weights: str | None = None
+    cameras: str = DEFAULT_CAMERAS
     #: ``"module:Class"`` of the state-track learner behind the front end.
     inner = ""
 
@@ -132,6 +135,7 @@ class PixelAgent(Agent):
         self.agent.load_state_dict(sd["agent"])
         self.encoder.load_state_dict(sd["encoder"])
         self.encoder_weights = sd.get("encoder_weights")
+        self.cameras = saved_cameras(sd)
         load_optimizer_state(self.encoder_optimizer, sd["encoder_optimizer"])
 
     @classmethod
@@ -142,7 +146,7 @@ class PixelAgent(Agent):
 
     def policy_state_dict(self) -> dict:
         return {"agent": self.agent.policy_state_dict(), "encoder": module_state(self.encoder),
-                "encoder_weights": self.encoder_weights}
+                "encoder_weights": self.encoder_weights, "cameras": self.cameras}
 
     @classmethod
     def from_policy_state_dict(cls, sd: dict) -> "PixelAgent":
@@ -150,6 +154,7 @@ class PixelAgent(Agent):
         out.agent = cls.inner_class().from_policy_state_dict(sd["agent"])
         out.encoder.load_state_dict(sd["encoder"])
         out.encoder_weights = sd.get("encoder_weights")
+        out.cameras = saved_cameras(sd)
         return out
 
 

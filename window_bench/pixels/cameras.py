@@ -35,6 +35,17 @@ def camera_names(camera_set: str) -> tuple[str, str]:
     return CAMERA_SETS[camera_set]
 
 
+def saved_cameras(state: dict) -> str:
+    """The camera set a saved (policy) state names; a state saved before camera sets existed
+    names none and was observed through ``"paper"``. Anything but a known set's name is
+    refused: a policy file never makes the env render a camera it does not list."""
+    name = state.get("cameras", DEFAULT_CAMERAS)
+    if not isinstance(name, str) or name not in CAMERA_SETS:
+        raise ValueError(f"the saved state names the camera set {name!r}; allowed: "
+                         f"{', '.join(CAMERA_SETS)}")
+    return name
+
+
 def render_views(env, camera_set: str = DEFAULT_CAMERAS) -> list[np.ndarray]:
     """The views of ``camera_set`` at ``env``'s current state: two (H, W, 3) uint8 images of
     the env's ``image_size``. ``"paper"`` returns exactly the env's own pixel observation."""

@@ -30,6 +30,7 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from baselines.sac import SACAgent, SACPolicy
 from window_bench.harness.agent import AgentSpec
 from window_bench.pixels.agent import check_pixel_spec
+from window_bench.pixels.cameras import DEFAULT_CAMERAS, saved_cameras
 from window_bench.pixels.encoder import FEATURE_VALUES, OBS_DIM, PixelObsEncoder
 
 
@@ -113,19 +114,23 @@ class PixelFeaturesExtractor(BaseFeaturesExtractor):
 
 class PixelSACPolicy(SACPolicy):
     """:class:`baselines.sac.SACPolicy` with the pixel features extractor; its policy state
-    also names the encoder weights, so evaluation workers build the same observation."""
+    also names the encoder weights and the camera set, so evaluation workers build the same
+    observation."""
 
     features_extractor_class = PixelFeaturesExtractor
     encoder_weights: str | None = None
+    cameras: str = DEFAULT_CAMERAS
     track = "pixels"
 
     def policy_state_dict(self) -> dict:
-        return {**super().policy_state_dict(), "encoder_weights": self.encoder_weights}
+        return {**super().policy_state_dict(), "encoder_weights": self.encoder_weights,
+                "cameras": self.cameras}
 
     @classmethod
     def from_policy_state_dict(cls, state: dict) -> "PixelSACPolicy":
         out = super().from_policy_state_dict(state)
         out.encoder_weights = state.get("encoder_weights")
+        out.cameras = saved_cameras(state)
         return out
 
 
@@ -144,6 +149,14 @@ class PixelSACAgent(SACAgent):
     @encoder_weights.setter
     def encoder_weights(self, path: str | None) -> None:
         self.policy.encoder_weights = path
+
+    @property
+    def cameras(self) -> str:
+        return self.policy.cameras
+
+    @cameras.setter
+    def cameras(self, name: str) -> None:
+        self.policy.cameras = name
 
     @classmethod
     def create(cls, spec: AgentSpec) -> "PixelSACAgent":
@@ -168,7 +181,7 @@ class PixelSACAgent(SACAgent):
         rb, replay = self.model.replay_buffer, state["replay"]
         n = len(replay["observations"])
         replay.update({f: getattr(rb, f)[:n].copy() for f in rb.map_fields})
-        return {**state, "encoder_weights": self.encoder_weights}
+        return {**state, "encoder_weights": self.encoder_weights, "cameras": self.cameras}
 
     def load_state_dict(self, state: dict) -> None:
         replay = state["replay"]
@@ -184,3 +197,4 @@ class PixelSACAgent(SACAgent):
         for f in rb.map_fields:
             getattr(rb, f)[:len(replay[f])] = replay[f]
         self.encoder_weights = state.get("encoder_weights")
+        self.cameras = saved_cameras(state)

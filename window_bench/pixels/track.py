@@ -33,6 +33,8 @@ class PixelTrack(Track):
 
     name = "pixels"
     label = "pixels (2 x RGB 128² + proprioception)"
+    #: The camera set this track renders (:mod:`window_bench.pixels.cameras`).
+    cameras = "paper"
     #: What every pixel agent adds to its state-track learner's Stage I: the front end
     #: (aggregation, fusion) and the encoder it trains through.
     front_end_modules = ("window_bench.pixels.agent", "window_bench.pixels.encoder")
@@ -56,11 +58,24 @@ class PixelTrack(Track):
     def eval_env(self, env_id: str, policy_state: dict, observe_every: int = 1, **kwargs):
         """The policy's env: a pixel agent names its encoder weights in its state. Pixels are
         rendered and encoded only where the policy reads them (its chunk grid)."""
+        from window_bench.pixels.cameras import saved_cameras
+
         return make_track_env(env_id, self.name, weights=policy_state.get("encoder_weights"),
-                              observe_every=observe_every, **kwargs)
+                              observe_every=observe_every, cameras=saved_cameras(policy_state),
+                              **kwargs)
 
     def for_run(self, encoder_weights: str | None = None) -> "PixelObservation":
         return PixelObservation(self, encoder_weights)
+
+
+class SeatPixelTrack(PixelTrack):
+    """``pixels-seat``: the pixel track with the two seat cameras in place of the wrist and
+    side views (:mod:`window_bench.pixels.cameras`); same encoder, agents and layout. The
+    policy files name the camera set, so evaluation renders the views the policy learnt on."""
+
+    name = "pixels-seat"
+    label = "pixels, seat cameras (2 x RGB 128² + proprioception)"
+    cameras = "seat"
 
 
 class PixelObservation(RunObservation):
@@ -74,6 +89,7 @@ class PixelObservation(RunObservation):
 
         super().__init__(track)
         self.replay_half_obs = FEATURE_VALUES   # both views' maps, float16-exact
+        self.cameras = track.cameras
         if encoder_weights is not None:
             encoder_weights = str(Path(encoder_weights).resolve())
         self.backbone, label = resolve_backbone(encoder_weights)
@@ -83,6 +99,7 @@ class PixelObservation(RunObservation):
         self.record.update(weights=label, sha256=sha256_file(path),
                            **{k: record[k] for k in ("command", "heldout_quality")
                               if k in record})
+        self.record["cameras"] = self.cameras
 
     def demos_cache(self, cache_dir: Path | None, demos_root: Path) -> Path:
         from window_bench.pixels.demo_cache import DEFAULT_SUBDIR
@@ -94,10 +111,12 @@ class PixelObservation(RunObservation):
         """The demos re-observed under the backbone, from the cache when it holds them."""
         from window_bench.pixels.demo_cache import cached_pixel_demos
 
-        return cached_pixel_demos(episodes, env_id, self.backbone, cache, progress)
+        return cached_pixel_demos(episodes, env_id, self.backbone, cache, progress,
+                                  cameras=self.cameras)
 
     def configure(self, agent) -> None:
         agent.encoder_weights = self.encoder_weights   # named in its policy files
+        agent.cameras = self.cameras
 
     def training_env(self, env_id: str, acceptance_noise: dict | None, max_episode_steps: int,
                      observe_every: int):
@@ -108,22 +127,26 @@ class PixelObservation(RunObservation):
 
         env = make_training_env(env_id, acceptance_noise, obs_mode="pixels",
                                 max_episode_steps=max_episode_steps)
-        return PixelFeatures(env, self.backbone, observe_every=observe_every)
+        return PixelFeatures(env, self.backbone, observe_every=observe_every,
+                             cameras=self.cameras)
 
     def supervisor(self, supervisor):
         return StateSupervisor(supervisor)   # the installer sees the scene
 
 
 def make_track_env(env_id: str, track: str, backbone=None, *, weights=None,
-                   observe_every: int = 1, **kwargs) -> gym.Env:
+                   observe_every: int = 1, cameras: str | None = None, **kwargs) -> gym.Env:
     """``gym.make(env_id, obs_mode="flat", **kwargs)`` for ``state``; the env wrapped in
-    :class:`PixelFeatures` for ``pixels``, with ``backbone`` or else the one
-    ``resolve_backbone(weights)`` gives (``None``: the shipped default). ``observe_every``
+    :class:`PixelFeatures` for a pixel track, with ``backbone`` or else the one
+    ``resolve_backbone(weights)`` gives (``None``: the shipped default), rendering
+    ``cameras`` (``None``: the track's camera set). ``observe_every``
     (pixels): render and encode only on the chunk grid of a policy with that horizon
     (:class:`PixelFeatures`); the state track's observation costs nothing to make and is
     made every step whatever it says."""
-    if get_track(track).name == DEFAULT_TRACK:
+    observed_on = get_track(track)
+    if observed_on.name == DEFAULT_TRACK:
         return gym.make(env_id, obs_mode="flat", **kwargs)
+    cameras = observed_on.cameras if cameras is None else cameras
     from window_bench.pixels.features import make_pixel_env
 
     if backbone is None:
@@ -131,7 +154,8 @@ def make_track_env(env_id: str, track: str, backbone=None, *, weights=None,
 
         backbone, _ = resolve_backbone(weights)
 
-    return make_pixel_env(env_id, backbone, observe_every=observe_every, **kwargs)
+    return make_pixel_env(env_id, backbone, observe_every=observe_every, cameras=cameras,
+                          **kwargs)
 
 
 def privileged_state(env) -> np.ndarray:
