@@ -162,8 +162,9 @@ def build(root: str | os.PathLike = "leaderboard/runs", readme: str | os.PathLik
             "`window_bench/harness/seeds.py`.\n"
             "³ Observation track: `state` = privileged state (the 52-float simulator state, "
             "with the panel's exact pose relative to the seat); `pixels` = the paper's wrist "
-            "and side RGB views through a frozen ResNet-10 plus 18 proprioceptive values "
-            "(docs/pixels.md).") if results else "No runs yet."
+            "and side RGB views through a frozen ResNet-10 plus 18 proprioceptive values; "
+            "`pixels-seat` = the same with two cameras on the opening's corners in place of "
+            "the wrist and side views (docs/pixels.md).") if results else "No runs yet."
     if snippet is not None:
         atomic_write_text(snippet, body + "\n")
     if readme is not None:
