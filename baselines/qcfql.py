@@ -192,6 +192,12 @@ class QCFQLConfig:
     of the states that make the installer take over. The installer's own chunks are learnt
     from as before. Needs batches with ``takeover_onset`` (ChunkReplay's)."""
 
+    demo_chunk_stride: int | None = None
+    """Where D_demo's chunk windows start (:func:`window_bench.data.chunks.chunk_transitions`):
+    ``None`` (paper, Eq. 4), on the fixed grid ``t = k*h``; ``1`` (the reference's sampling,
+    not the paper's), at every step, ``h`` times as many distinct windows of the same 50
+    demonstrations; any stride in ``1..h``. The online replay stays on the grid."""
+
     binary_gripper: bool = False
     """Feed the critic the vacuum command as the env executes it (``+1`` where the last
     action entry of each step is > 0.5, else ``-1``) so that ``Q`` values realized chunks and
@@ -254,6 +260,11 @@ class QCFQLConfig:
         if self.distill_data not in ("batch", "prior"):
             raise ValueError(f"QCFQLConfig.distill_data = {self.distill_data!r} is not "
                              f"allowed: use 'batch' or 'prior'")
+        stride = self.demo_chunk_stride
+        if stride is not None and (isinstance(stride, bool) or not isinstance(
+                stride, numbers.Integral) or not 1 <= stride <= self.h):
+            raise ValueError(f"QCFQLConfig.demo_chunk_stride = {stride!r} is not allowed: it "
+                             f"must be null or an integer in 1..h = {self.h}")
         if self.distill_reduction not in ("sum", "mean"):
             raise ValueError(f"QCFQLConfig.distill_reduction = {self.distill_reduction!r} is "
                              f"not allowed: use 'sum' or 'mean'")
@@ -478,6 +489,10 @@ class QCFQLAgent(Agent):
     @property
     def h(self) -> int:
         return self.config.h
+
+    @property
+    def demo_chunk_stride(self) -> int | None:
+        return self.config.demo_chunk_stride
 
     def learn(self, sample) -> tuple[dict[str, float], int]:
         """One :meth:`update` on one batch."""

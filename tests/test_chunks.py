@@ -35,13 +35,15 @@ def make_log(T, end="terminated", rewards=None, provenance=None, takeover_kind=N
                       env_id="WindowInstall-A-v0", seed=7)
 
 
-def reference_chunks(ep, h, gamma):
-    """Direct per-chunk loop over Eq. 4, written independently of the vectorized code."""
+def reference_chunks(ep, h, gamma, stride=None):
+    """Direct per-chunk loop over Eq. 4, written independently of the vectorized code
+    (windows every ``stride`` steps, default ``h``)."""
     T = len(ep.rewards)
+    stride = h if stride is None else stride
     rows = []
     k = 0
-    while k * h < T:
-        t0 = k * h
+    while k * stride < T:
+        t0 = k * stride
         real = [t for t in range(t0, t0 + h) if t < T]
         R = 0.0
         for i in range(h):
@@ -71,8 +73,8 @@ def reference_chunks(ep, h, gamma):
     return rows
 
 
-def assert_matches_reference(out, ep, h, gamma):
-    ref = reference_chunks(ep, h, gamma)
+def assert_matches_reference(out, ep, h, gamma, stride=None):
+    ref = reference_chunks(ep, h, gamma, stride)
     K = len(ref)
     assert set(out) == set(CHUNK_KEYS)
     for key in CHUNK_KEYS:
@@ -489,3 +491,28 @@ def test_takeover_onset_marks_the_policy_chunk_a_safety_takeover_ends():
     assert out["takeover_onset"].tolist() == [True, False, False, True, False]
     assert_matches_reference(out, make_log(len(prov), provenance=prov, takeover_kind=kind), 3,
                              0.9)
+
+
+# ----------------------------------------------------------------------------- denser windows
+@pytest.mark.parametrize("h,stride", [(1, 1), (3, 1), (3, 2), (10, 1), (10, 5), (10, 10)])
+@pytest.mark.parametrize("T", [1, 4, 9, 10, 23])
+@pytest.mark.parametrize("end", ["terminated", "truncated"])
+def test_windows_every_stride_steps_against_loop(h, stride, T, end):
+    """``stride < h``: a window at every ``stride``-th step, each Eq. 4 on its own start
+    (every window holding the last step is the episode's end), takeover onsets included."""
+    prov = ["policy"] * T
+    for t in range(T // 3, min(T, T // 3 + 4)):
+        prov[t] = "takeover"
+    ep = make_log(T, end=end, provenance=prov)
+    out = chunk_transitions(ep, h, 0.9, stride)
+    assert len(out["obs"]) == -(-T // stride)
+    assert_matches_reference(out, ep, h, 0.9, stride)
+
+
+def test_stride_h_is_the_grid_and_bad_strides_are_refused():
+    ep = make_log(17, provenance=_prov(17, range(4, 9)))
+    grid, same = chunk_transitions(ep, 5, 0.99), chunk_transitions(ep, 5, 0.99, 5)
+    assert all(np.array_equal(grid[k], same[k]) for k in CHUNK_KEYS)
+    for bad in (0, 6, 2.0, True):
+        with pytest.raises(ValueError, match=r"stride = .* windows start every 1\.\.h = 5"):
+            chunk_transitions(ep, 5, 0.99, bad)

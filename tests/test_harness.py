@@ -319,3 +319,36 @@ def test_baselines_run_through_the_harness(tmp_path, demos_root, method):
     if method == "sac":
         demos = load_episodes("window-bench/demos-a-average-v0", data_path=demos_root)
         assert r["hyperparameters"]["demo_transitions"] == sum(ep.T for ep in demos)
+
+
+def test_demo_chunk_stride_puts_a_window_at_every_demonstrated_step(tmp_path, monkeypatch,
+                                                                     demos_root):
+    """QC-FQL's ``demo_chunk_stride = 1`` (the reference's window sampling): D_demo holds one
+    chunk window per demonstrated step instead of one per ``h``; the online replay stays on
+    the grid; a resumed run rebuilds the same buffer; a stride outside 1..h stops the run in
+    one line before any file is written."""
+    import dataclasses
+
+    from window_bench.harness import methods
+
+    monkeypatch.setitem(methods.PROFILES, "smoke", dataclasses.replace(
+        methods.PROFILES["smoke"], eval_episodes=1, max_episode_steps=20))
+    run = Run("qcfql-offline", "WindowInstall-A-v0", "smoke", 0, tmp_path / "r",
+              demos=demos_root, agent_config={"demo_chunk_stride": 1}, progress=False,
+              eval_workers=1)
+    run.train()
+    steps = sum(ep.T for ep in run._demos())
+    assert run.demo_rb.stride == 1 and len(run.demo_rb) == steps
+    assert run.online_rb.stride == run.method.h == 10
+    starts = run.demo_rb.sample(512)["chunk_start"]
+    assert (starts % 10 != 0).any()          # windows off the grid
+    again = Run("qcfql-offline", "WindowInstall-A-v0", "smoke", 0, tmp_path / "r",
+                demos=demos_root, agent_config={"demo_chunk_stride": 1}, progress=False,
+                resume=True)
+    again._load()
+    assert again.demo_rb.stride == 1 and len(again.demo_rb) == steps
+    again.files.close()
+    with pytest.raises(ValueError, match=r"demo_chunk_stride = 11 is not allowed: .* 1\.\.h = 10"):
+        Run("qcfql", "WindowInstall-A-v0", "smoke", 0, tmp_path / "bad", demos=demos_root,
+            agent_config={"demo_chunk_stride": 11})
+    assert not (tmp_path / "bad").exists()

@@ -8,7 +8,9 @@ takeovers"). Chunk ``k`` is the transition
     (s_kh, u_k = (a_kh, ..., a_kh+h-1), R_k = sum_{i<h} gamma^i r_kh+i, s_min(kh+h, T))
 
 with the executed actions and the rewards actually received. Steps past the episode end are
-padded: zero actions, zero rewards, ``action_mask`` False, provenance ``""``.
+padded: zero actions, zero rewards, ``action_mask`` False, provenance ``""``. With
+``stride < h`` (an agent's ``demo_chunk_stride``, for D_demo) windows start every ``stride``
+steps instead and overlap, as the reference implementation samples windows at any step.
 
 Episode-end semantics for the TD target ``y = R_k + Gamma * (1 - terminal) * Q(next_obs, .)``:
 
@@ -45,10 +47,17 @@ def _check_args(h, gamma) -> tuple[int, float]:
     return int(h), float(gamma)
 
 
-def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np.ndarray]:
+def chunk_transitions(episode: EpisodeLog, h: int, gamma: float,
+                      stride: int | None = None) -> dict[str, np.ndarray]:
     """Chunked transitions of one episode on the fixed grid ``t = k*h`` (Eq. 4).
 
-    Returns a dict of arrays with leading dimension ``K = ceil(T / h)``:
+    ``stride`` (default ``h``, the paper's grid): windows start at ``t = k*stride``; 1 starts
+    one at every step, as the reference implementation samples its windows. Windows then
+    overlap; each is still ``(s_t, a_t..a_t+h-1, R, s_min(t+h, T))`` with the executed
+    actions, and every window that holds the episode's last step is its end (``terminal`` /
+    ``valid`` as below).
+
+    Returns a dict of arrays with leading dimension ``K = ceil(T / stride)``:
 
     ``obs`` (K, obs_dim) float32 ``s_kh``; ``actions`` (K, h, 7) float32 executed actions,
     zero-padded; ``action_mask`` (K, h) bool, True on real steps; ``reward`` (K,) float32
@@ -69,14 +78,20 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
     invalid episode (:meth:`EpisodeLog.validate`).
     """
     h, gamma = _check_args(h, gamma)
+    stride = h if stride is None else stride
+    if isinstance(stride, bool) or not isinstance(stride, numbers.Integral) \
+            or not 1 <= stride <= h:
+        raise ValueError(f"stride = {stride!r} is not allowed: windows start every 1..h = "
+                         f"{h} steps")
+    stride = int(stride)
     if not isinstance(episode, EpisodeLog):
         raise TypeError(f"episode must be an EpisodeLog, got {type(episode).__name__}")
     episode.validate()
 
     T = episode.T
     obs = np.asarray(episode.observations, dtype=np.float32)
-    K = -(-T // h)  # ceil(T / h) >= 1 since T >= 1
-    starts = np.arange(K, dtype=np.int64) * h
+    K = -(-T // stride)  # ceil(T / stride) >= 1 since T >= 1
+    starts = np.arange(K, dtype=np.int64) * stride
     needed = np.concatenate([starts, np.minimum(starts + h, T)])
     observed = episode.observed
     if not observed[needed].all():
@@ -94,7 +109,7 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
     reward = (rewards * weights).sum(axis=1).astype(np.float32)
 
     n_steps = mask.sum(axis=1).astype(np.int64)
-    last = np.arange(K) == K - 1  # only the last chunk can contain the episode's end
+    last = starts + h >= T  # the windows that hold the episode's last step (on the grid: one)
     terminal = last & bool(episode.terminated[-1])
     valid = ~(last & bool(episode.truncated[-1]) & (n_steps < h))
 
@@ -105,9 +120,9 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float) -> dict[str, np
     # first step: the installer took over right at the boundary).
     safety = (prov == "takeover") & (np.asarray(episode.takeover_kind).astype(str) == "safety")
     onset_steps = np.flatnonzero(safety[1:] & (prov[:-1] != "takeover")) + 1
-    takeover_onset = np.zeros(K, dtype=bool)
-    takeover_onset[(onset_steps - 1) // h] = True
-    takeover_onset &= prov[starts] != "takeover"
+    held = (onset_steps[None, :] - 1 >= starts[:, None]) \
+        & (onset_steps[None, :] - 1 < starts[:, None] + h)
+    takeover_onset = held.any(axis=1) & (prov[starts] != "takeover")
 
     return {
         "obs": obs[starts],  # fancy indexing: a copy

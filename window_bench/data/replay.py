@@ -4,7 +4,8 @@ A :class:`ChunkReplay` holds the chunk transitions (paper Eq. 4) of whole episod
 :func:`window_bench.data.chunks.chunk_transitions` on the paper's FIXED grid ``t = k*h``. The
 reference implementation (``qc``) instead samples a window start uniformly at any step and
 masks windows that cross an episode end; we follow the paper: every stored window starts on
-the grid, so a takeover never shifts it (Section 3.2). Windows cut short by the time limit
+the grid, so a takeover never shifts it (Section 3.2). ``stride < h`` (for D_demo, an
+agent's ``demo_chunk_stride``) stores a window at every ``stride``-th step instead. Windows cut short by the time limit
 are stored with ``valid = False`` and stay in the buffer; the agent's TD loss masks them
 (``baselines.qcfql``), and its flow loss masks padded steps with ``action_mask``.
 
@@ -112,9 +113,15 @@ class ChunkReplay:
         Leading observation values stored as float16 (see the module docstring); 0: none.
     """
 
-    def __init__(self, capacity: int, h: int, gamma: float, seed: int = 0, half_obs: int = 0):
+    def __init__(self, capacity: int, h: int, gamma: float, seed: int = 0, half_obs: int = 0,
+                 stride: int | None = None):
         self.capacity = _check_count("capacity", capacity, 1)
         self.h, self.gamma = _check_args(h, gamma)
+        #: Windows start every ``stride`` steps of an episode (``h``: the paper's grid).
+        self.stride = self.h if stride is None else _check_count("stride", stride, 1)
+        if self.stride > self.h:
+            raise ValueError(f"stride = {stride!r} is not allowed: windows start every 1..h = "
+                             f"{self.h} steps")
         self.seed = _check_count("seed", seed, 0)
         self.half_obs = _check_count("half_obs", half_obs, 0)
         self._generator = torch.Generator().manual_seed(self.seed)
@@ -170,13 +177,15 @@ class ChunkReplay:
         return self._buffer.sample(n)
 
     def add_episode(self, episode: EpisodeLog) -> int:
-        """Cut ``episode`` into chunk transitions on the fixed grid and append them.
+        """Cut ``episode`` into chunk transitions on the fixed grid (every ``stride`` steps)
+        and append them.
 
-        Returns the number of chunks added (``ceil(T / h)``). Raises ``ValueError`` for an
+        Returns the number of chunks added (``ceil(T / stride)``). Raises ``ValueError`` for an
         invalid episode (see :meth:`EpisodeLog.validate`) or one whose observation size
         differs from the chunks already stored.
         """
-        td = self._pack(chunks_to_tensordict(chunk_transitions(episode, self.h, self.gamma)))
+        td = self._pack(chunks_to_tensordict(chunk_transitions(episode, self.h, self.gamma,
+                                                               self.stride)))
         if len(self) > 0:
             stored = self._buffer.storage._storage
             for key in ("obs", "actions") + (("obs_half",) if self.half_obs else ()):
@@ -207,7 +216,8 @@ class ChunkReplay:
         data = ({key: value.clone() for key, value in self._buffer.storage[:n].items()}
                 if n else {})
         return {"capacity": self.capacity, "h": self.h, "gamma": self.gamma,
-                "seed": self.seed, "half_obs": self.half_obs, "chunks_added": self.chunks_added,
+                "seed": self.seed, "half_obs": self.half_obs, "stride": self.stride,
+                "chunks_added": self.chunks_added,
                 "episodes_added": self.episodes_added, "data": data,
                 "writer": dict(self._buffer.writer.state_dict()),
                 "rng_state": self._generator.get_state()}
@@ -218,8 +228,9 @@ class ChunkReplay:
         ``capacity``, ``h``, ``gamma`` and ``half_obs`` must match this buffer's
         (``ValueError`` otherwise).
         """
-        sd = {"half_obs": 0, **sd}      # saved before the setting existed: float32 throughout
-        for key in ("capacity", "h", "gamma", "half_obs"):
+        # Saved before the settings existed: float32 throughout, windows on the grid.
+        sd = {"half_obs": 0, "stride": sd["h"], **sd}
+        for key in ("capacity", "h", "gamma", "half_obs", "stride"):
             if sd[key] != getattr(self, key):
                 raise ValueError(f"ChunkReplay.load_state_dict: {key} = {sd[key]!r} in the "
                                  f"state dict, {getattr(self, key)!r} in this buffer")

@@ -70,6 +70,9 @@ class Agent(ABC):
     #: Takeover transitions also go to D_demo (HIL-SERL), not only to D_online: the harness
     #: adds each finished episode's :func:`takeover_segments` there.
     takeovers_to_demo: bool = False
+    #: D_demo's chunk windows start every this many steps (None: on the chunk grid, every
+    #: ``h``; 1: at every step, as the QC reference samples its windows).
+    demo_chunk_stride: int | None = None
     #: The agent keeps its own replay buffer (SB3 SAC): the harness hands it every finished
     #: training episode through :meth:`add_episode` instead of filling its chunk replays.
     own_replay: bool = False

@@ -77,7 +77,7 @@ def _replay_from_state(sd: dict):
     from window_bench.data.replay import ChunkReplay
 
     rb = ChunkReplay(sd["capacity"], sd["h"], sd["gamma"], seed=sd["seed"],
-                     half_obs=sd.get("half_obs", 0))
+                     half_obs=sd.get("half_obs", 0), stride=sd.get("stride"))
     rb.load_state_dict(sd)
     return rb
 
@@ -251,15 +251,18 @@ class Run:
 
     def _make_replays(self, demos) -> None:
         """D_demo (with room for the takeover segments of agents that add them) and D_online,
-        as chunk replays on the method's grid."""
+        as chunk replays on the method's grid (D_demo's windows every
+        ``agent.demo_chunk_stride`` steps where the agent asks for denser ones)."""
         from window_bench.data.replay import ChunkReplay
 
         h, p, gamma = self.method.h, self.profile, self.agent.gamma
-        demo_chunks = sum(-(-ep.T // h) for ep in demos)
+        stride = self.agent.demo_chunk_stride or h    # D_demo's windows: the grid or denser
+        demo_chunks = sum(-(-ep.T // stride) for ep in demos)
         if self.agent.takeovers_to_demo:
             demo_chunks += p.budget_steps
         half = self.observation.replay_half_obs   # e.g. feature maps stored as float16
-        self.demo_rb = ChunkReplay(demo_chunks, h, gamma, seed=self.seed, half_obs=half)
+        self.demo_rb = ChunkReplay(demo_chunks, h, gamma, seed=self.seed, half_obs=half,
+                                   stride=stride)
         for ep in demos:
             self.demo_rb.add_episode(ep)
         self.online_rb = ChunkReplay(p.budget_steps // h + 2 * p.max_episode_steps, h, gamma,

@@ -10,7 +10,7 @@ cells load it. What Stage I produces is fully determined by
 * the demonstrations (a sha256 over their observations and actions, so hand-recorded demos
   count as different demos), and the run seed,
 * the code that computes it (sha256 of the source files the agent's track names for its Stage I,
-  and of the replay's) and the torch version,
+  and of the replay and its chunking) and the torch version,
 
 and the cache key is the sha256 of exactly that (:func:`stage1_key`). An entry holds the
 pretrained agent, the demo buffer's sampler state, torch's global RNG state, the Stage I
@@ -73,7 +73,8 @@ def key_material(agent_kind: str, track: str, agent_config: dict, offline_steps:
         raise ValueError(f"agent kind {agent_kind!r} has no Stage I to cache")
     return {"agent": agent_kind, "agent_config": agent_config, "offline_steps": int(offline_steps),
             "batch_size": int(batch_size), "demos_sha256": demos_digest, "seed": int(seed),
-            "code_sha256": _source_sha256(*modules, "window_bench.data.replay"),
+            "code_sha256": _source_sha256(*modules, "window_bench.data.replay",
+                                         "window_bench.data.chunks"),
             "torch": torch.__version__}
 
 

@@ -108,6 +108,10 @@ class PixelAgent(Agent):
     def gamma(self) -> float:
         return self.agent.gamma
 
+    @property
+    def demo_chunk_stride(self) -> int | None:
+        return getattr(self.agent, "demo_chunk_stride", None)
+
     def embed(self, obs) -> torch.Tensor:
         """Flat pixel observations (B, OBS_DIM) -> the 82-value learner input (no gradient)."""
         with torch.no_grad():
