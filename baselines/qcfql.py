@@ -198,6 +198,12 @@ class QCFQLConfig:
     not the paper's), at every step, ``h`` times as many distinct windows of the same 50
     demonstrations; any stride in ``1..h``. The online replay stays on the grid."""
 
+    flow_trains_encoder: bool = False
+    """Pixel track only (``window_bench.pixels.agent.PixelQCFQL``): the flow teacher's loss
+    also trains the trainable aggregation of the camera features, beside the critic's
+    (``False``: the critic's alone, as HIL-SERL and DrQ train their encoders). No effect on
+    the state track, which has no encoder."""
+
     binary_gripper: bool = False
     """Feed the critic the vacuum command as the env executes it (``+1`` where the last
     action entry of each step is > 0.5, else ``-1``) so that ``Q`` values realized chunks and
@@ -239,7 +245,7 @@ class QCFQLConfig:
                 raise ValueError(f"QCFQLConfig.{name} = {value!r} is not allowed: it must be "
                                  f"a real number in {interval}")
         for name in ("normalize_q_loss", "critic_layer_norm", "distill_from_ema",
-                     "binary_gripper"):
+                     "binary_gripper", "flow_trains_encoder"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"QCFQLConfig.{name} = {getattr(self, name)!r} is not "
                                  f"allowed: it must be true or false")

@@ -95,6 +95,34 @@ def test_pixel_agent_update_keeps_backbone_and_trains_aggregation(backbone):
                                       agent.act(obs3, deterministic=True))
 
 
+def test_flow_trains_encoder_sends_the_teachers_gradient_into_the_aggregation():
+    """``flow_trains_encoder``: the aggregation's gradient is the critic's plus the flow
+    teacher's (without it, the critic's alone); the student never trains it."""
+    from baselines.qcfql import QCFQLConfig
+    from window_bench.pixels.agent import PixelQCFQL
+
+    def grad(**kw):
+        agent = PixelQCFQL(QCFQLConfig(h=2, hidden=(32, 32), batch_size=8, **kw), seed=0)
+        b = _batch(8, h=2)
+        emb, next_emb = agent.encoder.encode_pair(b["obs"], b["next_obs"])
+        parts = agent.agent.prepare({**b, "obs": emb, "next_obs": next_emb})
+        torch.manual_seed(0)
+        critic, _ = agent.agent.critic_loss(parts)
+        (g_critic,) = torch.autograd.grad(critic, agent.encoder.views[0].spatial.kernel,
+                                          retain_graph=True)
+        agent.encoder_optimizer.zero_grad(set_to_none=True)
+        torch.manual_seed(1)
+        agent.update(b)
+        return g_critic, agent.encoder.views[0].spatial.kernel.grad
+
+    g_critic, g_off = grad()
+    _, g_on = grad(flow_trains_encoder=True)
+    torch.testing.assert_close(g_off, g_critic)
+    assert not torch.allclose(g_on, g_off)
+    with pytest.raises(ValueError, match="flow_trains_encoder = 1 is not allowed"):
+        QCFQLConfig(flow_trains_encoder=1)
+
+
 def test_pixel_agent_from_the_harness_spec():
     from window_bench.harness.agent import AgentSpec
     from window_bench.harness.methods import PROFILES

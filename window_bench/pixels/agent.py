@@ -187,7 +187,9 @@ class PixelQCFQL(PixelAgent):
 
     def update(self, batch: Mapping) -> dict[str, float]:
         """One gradient step (critic + encoder aggregation, teacher, student) and the Polyak
-        steps; ``batch`` as for ``QCFQLAgent.update`` with ``obs``/``next_obs`` of OBS_DIM."""
+        steps; ``batch`` as for ``QCFQLAgent.update`` with ``obs``/``next_obs`` of OBS_DIM.
+        The critic's loss trains the aggregation; with ``config.flow_trains_encoder`` the
+        flow teacher's too; the student reads the embedding with the gradient stopped."""
         agent = self.agent
         emb, next_emb = self.encoder.encode_pair(torch.as_tensor(batch["obs"]),
                                                  torch.as_tensor(batch["next_obs"]))
@@ -195,7 +197,7 @@ class PixelQCFQL(PixelAgent):
                            "obs": emb, "next_obs": next_emb})
         critic_loss, q = agent.critic_loss(b)
         stopped = {**b, "obs": b["obs"].detach()}
-        flow_loss = agent.flow_loss(stopped)
+        flow_loss = agent.flow_loss(b if agent.config.flow_trains_encoder else stopped)
         actor = agent.actor_loss(stopped)
         loss = critic_loss + flow_loss + actor["loss"]
         agent.optimizer.zero_grad(set_to_none=True)
