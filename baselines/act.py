@@ -57,7 +57,8 @@ from window_bench.data.steplog import ACTION_DIM, EpisodeLog
 from window_bench.envs.task import FAILURE_MODE_NAMES, STAGES
 from window_bench.harness.agent import (Agent, AgentSpec, generator_state, load_optimizer_state,
                                         module_state, optimizer_state, with_overrides)
-from window_bench.installer.supervisor import FLAT_DIM, fine_pose_features
+from window_bench.installer.supervisor import (check_fine_pose, fine_pose_features,
+                                              fine_pose_inputs)
 
 #: Number of leading floats of the ``flat`` observation that belong to the robot: the
 #: ``robot0_*`` entries of ``window_bench.envs.env.STATE_KEYS`` (7 + 7 + 3 + 4 + 1 + 18).
@@ -156,11 +157,7 @@ class ACTConfig:
         if not (_is_real(self.obs_clip) and self.obs_clip >= 0):
             raise ValueError(f"ACTConfig.obs_clip = {self.obs_clip!r} is not allowed: must be "
                              f"0 (no clipping) or a finite number > 0")
-        for name, lo, hi in (("fine_pose_mm", 0.0, 1000.0), ("fine_pose_deg", 0.0, 90.0)):
-            v = getattr(self, name)
-            if not (_is_real(v) and lo <= v <= hi) or (name == "fine_pose_deg" and v == 0):
-                raise ValueError(f"ACTConfig.{name} = {v!r} is not allowed: must lie in "
-                                 f"{'[' if name == 'fine_pose_mm' else '('}{lo}, {hi}]")
+        check_fine_pose("ACTConfig", self.fine_pose_mm, self.fine_pose_deg)
         for name, hi in (("lr", 1.0), ("std_floor", math.inf)):
             v = getattr(self, name)
             if not (_is_real(v) and 0.0 < v <= hi):
@@ -470,9 +467,7 @@ class ACTAgent(Agent):
         _check_int("obs_dim", obs_dim, 1)
         _check_int("action_dim", action_dim, 1)
         _check_int("seed", seed, 0)
-        if config.fine_pose_mm and obs_dim != FLAT_DIM:
-            raise ValueError(f"ACTConfig.fine_pose_mm = {config.fine_pose_mm} needs the flat "
-                             f"state observation ({FLAT_DIM} values); obs_dim = {obs_dim}")
+        fine = fine_pose_inputs("ACTConfig", config.fine_pose_mm, obs_dim)
         if config.robot_dim > obs_dim:
             raise ValueError(f"ACTConfig.robot_dim = {config.robot_dim} is not allowed for "
                              f"obs_dim = {obs_dim}: must lie in [0, {obs_dim}]")
@@ -482,7 +477,7 @@ class ACTAgent(Agent):
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(torch.randint(2**62, (1,), generator=torch_gen)))
             # the fine pose features join the end of the observation: the object-state token
-            self.model = ACTModel(self.obs_dim + (6 if config.fine_pose_mm else 0),
+            self.model = ACTModel(self.obs_dim + fine,
                                   self.action_dim, config)
             self._torch_rng = torch.get_rng_state()
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr,

@@ -69,7 +69,8 @@ from window_bench.data.steplog import PROVENANCES, EpisodeLog
 from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
                                         module_state, optimizer_state, plain, with_overrides)
 from window_bench.envs.env import VACUUM_THRESHOLD
-from window_bench.installer.supervisor import FLAT_DIM, FLAT_SLICES, fine_pose_features
+from window_bench.installer.supervisor import (FLAT_DIM, FLAT_SLICES, check_fine_pose,
+                                              fine_pose_features, fine_pose_inputs)
 
 _ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
 #: Batch keys the learner reads (``valid`` is optional and defaults to all True; the
@@ -314,12 +315,7 @@ class HILSERLConfig:
             raise ValueError(f"action_scale = {self.action_scale!r} is not allowed: it must be "
                              f"two numbers in (0, 1] (translation, rotation)")
         object.__setattr__(self, "action_scale", tuple(float(v) for v in scale))
-        if not (real(self.fine_pose_mm) and 0 <= self.fine_pose_mm <= 1000):
-            raise ValueError(f"fine_pose_mm = {self.fine_pose_mm!r} is not allowed: it must "
-                             f"lie in [0, 1000] (0: off)")
-        if not (real(self.fine_pose_deg) and 0 < self.fine_pose_deg <= 90):
-            raise ValueError(f"fine_pose_deg = {self.fine_pose_deg!r} is not allowed: it must "
-                             f"lie in (0, 90]")
+        check_fine_pose("HILSERLConfig", self.fine_pose_mm, self.fine_pose_deg)
         if not (real(self.grasp_penalty) and self.grasp_penalty <= 0):
             raise ValueError(f"grasp_penalty = {self.grasp_penalty!r} is not allowed: it must "
                              f"be a finite number <= 0")
@@ -571,10 +567,7 @@ class HILSERLAgent(Agent):
             raise ValueError(f"action_dim = {action_dim} is not allowed with vacuum_head = "
                              f"{config.vacuum_head!r}: it needs at least one pose dimension "
                              f"and the vacuum")
-        if config.fine_pose_mm and obs_dim != FLAT_OBS_DIM:
-            raise ValueError(f"fine_pose_mm = {config.fine_pose_mm} needs the flat state "
-                             f"observation ({FLAT_OBS_DIM} values); obs_dim = {obs_dim}")
-        in_dim = obs_dim + (6 if config.fine_pose_mm else 0)   # what the networks read
+        in_dim = obs_dim + fine_pose_inputs("HILSERLConfig", config.fine_pose_mm, obs_dim)
         # With the grasp critic or a held vacuum, the actor and the critic ensemble see the
         # pose dimensions only (HIL-SERL's critic takes actions[..., :-1]).
         self.pose_dim = (action_dim - 1 if self.discrete_vacuum or self.held_vacuum

@@ -47,7 +47,8 @@ from torchrl.modules import MLP
 
 from window_bench.envs.env import VACUUM_THRESHOLD
 from window_bench.data.replay import PROVENANCE_CODES
-from window_bench.installer.supervisor import FLAT_DIM, fine_pose_features
+from window_bench.installer.supervisor import (check_fine_pose, fine_pose_features,
+                                              fine_pose_inputs)
 from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
                                         module_state, optimizer_state, plain, with_overrides)
 
@@ -234,8 +235,7 @@ class QCFQLConfig:
                   ("obs_std_floor", 0.0, 1.0, False),
                   ("act_noise_scale", 0.0, 10.0, True), ("td_noise_scale", 0.0, 10.0, True),
                   ("distill_noise_scale", 0.0, 10.0, True),
-                  ("policy_ema", 0.0, 1.0, True), ("fine_pose_mm", 0.0, 1000.0, True),
-                  ("fine_pose_deg", 0.0, 90.0, False))
+                  ("policy_ema", 0.0, 1.0, True))
         for name, lo, hi, lo_ok in checks:
             value = getattr(self, name)
             ok = (isinstance(value, numbers.Real) and not isinstance(value, bool)
@@ -249,6 +249,7 @@ class QCFQLConfig:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"QCFQLConfig.{name} = {getattr(self, name)!r} is not "
                                  f"allowed: it must be true or false")
+        check_fine_pose("QCFQLConfig", self.fine_pose_mm, self.fine_pose_deg)
         if self.q_agg not in ("mean", "min"):
             raise ValueError(f"QCFQLConfig.q_agg = {self.q_agg!r} is not allowed: use 'mean' "
                              f"or 'min'")
@@ -446,10 +447,8 @@ class QCFQLAgent(Agent):
         self.config = copy.deepcopy(config)
         self.obs_dim, self.action_dim, self.seed = int(obs_dim), int(action_dim), int(seed)
         self.chunk_dim = self.config.h * self.action_dim
-        if self.config.fine_pose_mm and self.obs_dim != FLAT_DIM:
-            raise ValueError(f"fine_pose_mm = {self.config.fine_pose_mm} needs the flat state "
-                             f"observation ({FLAT_DIM} values); this agent has obs_dim = {obs_dim}")
-        in_dim = obs_dim + (6 if self.config.fine_pose_mm else 0)   # what the networks see
+        in_dim = obs_dim + fine_pose_inputs("QCFQLConfig", self.config.fine_pose_mm,
+                                            self.obs_dim)   # what the networks see
         self.num_updates = 0
 
         mean = np.zeros(obs_dim) if obs_mean is None else np.asarray(obs_mean, np.float64)

@@ -110,8 +110,8 @@ def params(module):
     ({"target_range": [0.0]}, "target_range"),
     ({"target_range": [0.0, float("inf")]}, "target_range"),
     ({"target_range": 1.0}, "target_range"),
-    ({"fine_pose_mm": -1.0}, r"fine_pose_mm = -1.0 .* \[0, 1000\]"),
-    ({"fine_pose_deg": 0.0}, r"fine_pose_deg = 0.0 .* \(0, 90\]"),
+    ({"fine_pose_mm": -1.0}, r"HILSERLConfig.fine_pose_mm = -1.0 .* \[0.0, 1000.0\]"),
+    ({"fine_pose_deg": 0.0}, r"HILSERLConfig.fine_pose_deg = 0.0 .* \(0.0, 90.0\]"),
 ])
 def test_config_rejects_bad_values(kwargs, match):
     with pytest.raises(ValueError, match=match):

@@ -89,6 +89,32 @@ def fine_pose_features(obs, mm: float, deg: float):
     rot = obs[..., FLAT_SLICES["window_rot_rel"]] / float(np.deg2rad(deg))
     return torch.tanh(torch.cat([pos, rot], dim=-1))
 
+def check_fine_pose(owner: str, mm, deg) -> None:
+    """The fine pose scales a learner's config may hold: ``mm`` in [0, 1000] (0: off),
+    ``deg`` in (0, 90]; ``ValueError`` naming ``owner`` (e.g. ``"ACTConfig"``) otherwise."""
+    def real(v) -> bool:
+        return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) \
+            and bool(np.isfinite(v))
+
+    if not (real(mm) and 0 <= mm <= 1000):
+        raise ValueError(f"{owner}.fine_pose_mm = {mm!r} is not allowed: it must lie in "
+                         f"[0.0, 1000.0] (0: off)")
+    if not (real(deg) and 0 < deg <= 90):
+        raise ValueError(f"{owner}.fine_pose_deg = {deg!r} is not allowed: it must lie in "
+                         f"(0.0, 90.0]")
+
+
+def fine_pose_inputs(owner: str, mm: float, obs_dim: int) -> int:
+    """How many values the fine pose features add to an ``obs_dim`` observation (6, or 0
+    when off); ``ValueError`` when they are on and the observation is not the flat state."""
+    if not mm:
+        return 0
+    if obs_dim != FLAT_DIM:
+        raise ValueError(f"{owner}.fine_pose_mm = {mm} needs the flat state observation "
+                         f"({FLAT_DIM} values); obs_dim = {obs_dim}")
+    return 6
+
+
 #: Safety cues, in the order they are checked.
 CUES = ("suction_lost", "wedging", "stall", "reinsertion", "hover", "acquisition",
         "no_progress")
