@@ -5,9 +5,10 @@ A :class:`ChunkReplay` holds the chunk transitions (paper Eq. 4) of whole episod
 reference implementation (``qc``) instead samples a window start uniformly at any step and
 masks windows that cross an episode end; we follow the paper: every stored window starts on
 the grid, so a takeover never shifts it (Section 3.2). ``stride < h`` (for D_demo, an
-agent's ``demo_chunk_stride``) stores a window at every ``stride``-th step instead. Windows cut short by the time limit
-are stored with ``valid = False`` and stay in the buffer; the agent's TD loss masks them
-(``baselines.qcfql``), and its flow loss masks padded steps with ``action_mask``.
+agent's ``demo_chunk_stride``) stores a window at every ``stride``-th step instead. Windows
+cut short by the time limit are stored with ``valid = False`` and stay in the buffer; the
+agent's TD loss masks them (``baselines.qcfql``), and its flow loss masks padded steps with
+``action_mask``.
 
 Storage is a :class:`torchrl.data.ReplayBuffer` over a fixed-capacity
 :class:`torchrl.data.LazyTensorStorage` with a round-robin writer (FIFO: when full, the
