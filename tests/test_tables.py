@@ -148,8 +148,41 @@ def test_figures_written(tmp_path):
     for seed in (0, 1):
         _results(runs, "qcfql", "WindowInstall-A-v0", seed, 0.9, episodes=eps)
     build(runs, tmp_path / "out")
-    for name in ("fig10.png", "fig10.svg", "fig11.png", "fig11.svg"):
+    for name in ("fig10.png", "fig10.svg", "fig11.png", "fig11.svg", "budget.png", "budget.svg"):
         assert (tmp_path / "out" / name).stat().st_size > 1000
+
+
+def test_budget_figure_draws_each_profile_of_the_headline_methods(tmp_path, monkeypatch):
+    """``budget.png``: one line per headline method and profile from the checkpoint
+    evaluations, the final test-seed success as a dot at the line's end, the paper's final
+    success as a star (online methods at 3.0 h, offline ones at 0); rows off the headline
+    (pixels, variants, development-seed finals) are not drawn."""
+    import matplotlib.axes
+    import matplotlib.figure
+
+    runs = tmp_path / "runs"
+    for seed in (0, 1):
+        for profile, top in (("smoke", 24_000), ("long", 108_000)):
+            d = _results(tmp_path / profile, "qcfql", "WindowInstall-A-v0", seed, 0.5 + 0.1 * seed)
+            (runs / "WindowInstall-A-v0").mkdir(parents=True, exist_ok=True)
+            d = d.rename(runs / "WindowInstall-A-v0" / d.name.replace("smoke", profile))
+            r = json.loads((d / "results.json").read_text())
+            r["profile"] = {**r["profile"], "name": profile}
+            r["checkpoints"] = [{"env_steps": s, "success_rate": s / top / 2,
+                                 "wilson95": [0.0, 1.0]} for s in range(0, top + 1, top // 4)]
+            (d / "results.json").write_text(json.dumps(r))
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.2, track="pixels")
+    legends, legend = [], matplotlib.figure.Figure.legend
+    monkeypatch.setattr(matplotlib.figure.Figure, "legend", lambda self, handles, labels, **kw:
+                        legends.append(labels) or legend(self, handles, labels, **kw))
+    stars, plot = [], matplotlib.axes.Axes.plot
+    monkeypatch.setattr(matplotlib.axes.Axes, "plot", lambda self, x, y, *a, **kw: (
+        stars.append((list(x), list(y))) if kw.get("marker") == "*" else None)
+        or plot(self, x, y, *a, **kw))
+    build(runs, tmp_path / "out")
+    assert legends[-1] == ["Ours (complete pipeline), long", "Ours (complete pipeline), smoke"]
+    assert (tmp_path / "out" / "budget.png").stat().st_size > 1000
+    assert ([3.0], [100.0]) in stars and ([0.0], [78.0]) in stars   # complete; offline-only
 
 
 def test_figure_legends_name_lines_as_the_table_names_rows(tmp_path, monkeypatch):
@@ -165,8 +198,9 @@ def test_figure_legends_name_lines_as_the_table_names_rows(tmp_path, monkeypatch
     monkeypatch.setattr(matplotlib.figure.Figure, "legend", lambda self, handles, labels, **kw:
                         legends.append(labels) or legend(self, handles, labels, **kw))
     t2 = build(runs, tmp_path / "out")["table2.md"]
-    assert legends == [["Ours (complete pipeline)", "Ours (complete pipeline), pixels",
-                        "Ours (complete pipeline), variant 1"]]      # Fig. 11 (B) has no rows
+    assert legends[0] == ["Ours (complete pipeline)", "Ours (complete pipeline), pixels",
+                          "Ours (complete pipeline), variant 1"]     # Fig. 11 (B) has no rows
+    assert len(legends) == 1                  # the budget figure: no checkpoints, no legend
     for label in legends[0]:
         assert f"| {label} | 1 |" in t2
 

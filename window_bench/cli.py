@@ -364,8 +364,8 @@ def cmd_tables(args) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     pages = build(args.runs, args.out, figures=not args.no_figures, readme=args.readme)
-    print(f"wrote {', '.join(sorted(pages))}{'' if args.no_figures else ', fig10/fig11 .png/.svg'}"
-          f" under {args.out}")
+    figures = "" if args.no_figures else ", fig10/fig11/budget .png/.svg"
+    print(f"wrote {', '.join(sorted(pages))}{figures} under {args.out}")
     return 0
 
 

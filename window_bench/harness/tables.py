@@ -23,7 +23,9 @@ Outputs (all written atomically, only under ``--out`` and to ``--readme``): one 
 per table (``table2.md`` ... ``table7.md``), ``tables.md`` (their list and the seeds
 protocol), and ``fig10.png/.svg`` (setting A) and ``fig11.png/.svg`` (setting B): running
 averages over the last 20 training episodes of success, cycle time and intervention rate
-against online hours, mean and interval over seeds. ``index.md``, the Results section's
+against online hours, mean and interval over seeds; ``budget.png/.svg``: what the budget buys,
+the headline methods' success against simulated hours for every profile that has runs.
+``index.md``, the Results section's
 hand-written overview, is never written. The committed Results pages and the README's
 headline are regenerated with::
 
@@ -73,6 +75,8 @@ class Sample:
     online_h: float | None = None
     path: str = ""
     episodes: list = field(default_factory=list)
+    #: (simulated hours, success) of every checkpoint evaluation (development seeds)
+    checkpoints: list = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -138,7 +142,9 @@ def load_runs(root: str | os.PathLike) -> dict[RowKey, list[Sample]]:
             time_to_95_h=f.get("time_to_95_sim_hours") if m["online_updates"] else None,
             takeover_min=f.get("takeover_minutes"),
             online_h=f["sim_hours"] if (m["online_updates"] or m["warm_start"]) else None,
-            path=str(rel), episodes=r.get("train_episodes") or []))
+            path=str(rel), episodes=r.get("train_episodes") or [],
+            checkpoints=[(c["env_steps"] / STEPS_PER_HOUR, c["success_rate"])
+                         for c in r.get("checkpoints") or []]))
         for panel_id, panel in PANELS.items():
             ood = r["env_id"].replace("-v0", f"-{panel_id}-v0")
             ev_path = root / ood / f"{path.parent.name}.json"
@@ -568,6 +574,84 @@ def plot_curves(rows, setting: str, path_png: Path, path_svg: Path,
     return keys
 
 
+#: The file name (without extension) of :func:`plot_budget`'s figure.
+BUDGET_FIGURE = "budget"
+#: The paper's interaction budget (simulated hours), where its final numbers are.
+PAPER_HOURS = 3.0
+
+
+def plot_budget(rows, path_png: Path, path_svg: Path, paper: dict | None = None
+                ) -> list[RowKey]:
+    """What the budget buys: for each headline method (state track, held-out final
+    evaluation), success against simulated hours on A and on B, one line per profile (mean
+    over seeds of the checkpoint evaluations on the development seeds) ending in its final
+    success on the test seeds (a marker with the interval over seeds); the paper's final
+    success at its 3.0 h as a star (``paper``: :func:`load_paper`)."""
+    import warnings
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    profiles = sorted({k.profile for k in rows}, key=lambda p: (p != "cpu", p))
+    styles = ["-", "--", ":", "-."]
+    matplotlib.rcParams["svg.hashsalt"] = "window-bench"
+    fig, axes = plt.subplots(1, 2, figsize=(9.6, 4.2), layout="constrained", sharey=True)
+    drawn = []
+    for ax, setting in zip(axes, ("A", "B")):
+        for i, (label, method, overrides) in enumerate(_headline_rows()):
+            p = (paper or {}).get((2 if setting == "A" else 3, setting, method,
+                                   METHODS[method].h, "0.5x0.5"))
+            if p and not overrides and p.get("final_success_pct") is not None:
+                at = PAPER_HOURS if METHODS[method].online_updates else 0.0   # offline: 0 h
+                ax.plot([at], [float(p["final_success_pct"])], color=f"C{i}",
+                        marker="*", ms=10, mfc="none", ls="none")
+            for j, profile in enumerate(profiles):
+                keys = [k for k in rows if (k.setting, k.method, k.overrides, k.track, k.profile,
+                                            k.seed_set, k.panel) ==
+                        (setting, method, overrides, "state", profile, "test", "0.5x0.5")
+                        and k.h == METHODS[method].h]
+                if not keys:
+                    continue
+                ss = [s for s in rows[keys[0]] if s.checkpoints]
+                if not ss:
+                    continue
+                drawn.append(keys[0])
+                top = max(s.checkpoints[-1][0] for s in ss)
+                x = np.unique(np.concatenate([[h for h, _ in s.checkpoints] for s in ss]))
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    y = np.nanmean([np.interp(x, *zip(*s.checkpoints), right=np.nan)
+                                    for s in ss], axis=0)
+                name = label.replace("`", "") + ("" if profile == "cpu" else f", {profile}")
+                ax.plot(x, 100 * y, color=f"C{i}", ls=styles[j % 4], lw=1.4,
+                        label=name if setting == "A" else None)
+                final = [s.success for s in rows[keys[0]]]
+                ci = bootstrap_ci(final, n_boot=2000)
+                mean = 100 * float(np.mean(final))
+                err = None if ci is None else [[mean - 100 * ci[0]], [100 * ci[1] - mean]]
+                ax.errorbar([top], [mean], yerr=err, color=f"C{i}", marker="o", ms=5,
+                            capsize=3, ls="none")
+        ax.set_title(f"Experiment {setting}", fontsize=10)
+        ax.set_xlabel("online hours (simulated)", fontsize=9.5)
+        ax.tick_params(labelsize=8.5)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("success (%)", fontsize=9.5)
+    if drawn:
+        fig.legend(*axes[0].get_legend_handles_labels(), fontsize=9, loc="outside lower center",
+                   ncol=3, frameon=False)
+    fig.suptitle("What the budget buys. Lines: checkpoint success (development seeds, mean "
+                 "over seeds; solid: cpu profile);\ndots: final success (test seeds, 95 % "
+                 f"interval); stars: the paper ({PAPER_HOURS:.1f} h online; offline methods "
+                 "at 0)", fontsize=9.5)
+    atomic_write(path_png, lambda f: fig.savefig(f, format="png", dpi=100,
+                                                 metadata={"Software": None}))
+    atomic_write(path_svg, lambda f: fig.savefig(f, format="svg", metadata={"Date": None}))
+    plt.close(fig)
+    return drawn
+
+
 # ---------------------------------------------------------------------------- pages
 TITLES = {
     2: ("Table 2", "Experiment A: sample efficiency and supervision burden", "A"),
@@ -738,7 +822,8 @@ def outputs(out: str | os.PathLike, figures: bool = True,
     out = Path(out)
     files = [out / f"table{t}.md" for t in TITLES] + [out / TABLES_NAME]
     if figures:
-        files += [out / f"{fig}.{ext}" for fig in ("fig10", "fig11") for ext in ("png", "svg")]
+        files += [out / f"{fig}.{ext}" for fig in ("fig10", "fig11", BUDGET_FIGURE)
+                  for ext in ("png", "svg")]
     return files + ([Path(readme)] if readme is not None else [])
 
 
@@ -767,6 +852,8 @@ def build(root: str | os.PathLike, out: str | os.PathLike, figures: bool = True,
     pages[TABLES_NAME] = TABLES_PAGE.format(root=label, links=links, n_evals=n_evals,
                                             n_runs=sum(len(v) for k, v in rows.items()
                                                        if k.panel == "0.5x0.5"))
+    if figures:
+        plot_budget(rows, out / f"{BUDGET_FIGURE}.png", out / f"{BUDGET_FIGURE}.svg", paper)
     for name, text in pages.items():
         atomic_write_text(out / name, text)
     if readme is not None:
