@@ -56,7 +56,10 @@ class OperatorProfile:
     reinsert to the seat instead of handing back in front of the opening);
     ``suction_cue_in_opening`` (false: a panel already in the opening that the policy lets go
     of, or that comes off the cup more than half-way in, is not a ``suction_lost`` cue; it
-    cannot fall, and acceptance judges it).
+    cannot fall, and acceptance judges it); ``steady_near_contact`` (the takeover's
+    ``recovery_noise`` drops to ``FINE_NOISE_SCALE`` of itself while the installer aligns,
+    inserts, recovers or seats, as the demonstrator's hand noise does; false: full noise
+    throughout, which on the insertion alone keeps every takeover from seating).
     """
 
     name: str
@@ -87,6 +90,7 @@ class OperatorProfile:
     hover_steps: int = 0
     seat_after_insertion_takeover: bool = False
     suction_cue_in_opening: bool = True
+    steady_near_contact: bool = False
 
     def __post_init__(self):
         checks = {
@@ -118,7 +122,8 @@ class OperatorProfile:
             if isinstance(value, bool) or not (lo <= value <= hi):
                 raise ValueError(f"OperatorProfile {self.name!r}: {key} = {value!r} is outside "
                                  f"[{lo}, {hi}]")
-        for key in ("seat_after_insertion_takeover", "suction_cue_in_opening"):
+        for key in ("seat_after_insertion_takeover", "suction_cue_in_opening",
+                    "steady_near_contact"):
             if not isinstance(getattr(self, key), bool):
                 raise ValueError(f"OperatorProfile {self.name!r}: {key} = "
                                  f"{getattr(self, key)!r} must be true or false")
@@ -144,10 +149,12 @@ OPERATORS: dict[str, OperatorProfile] = {
         # non-progressing states"; on a 90 % policy this cuts takeovers of episodes it
         # would finish alone from 8 to 3 of 36 and still catches all 4 failures,
         # ``experiments/sanity/cue_precision.py``), and takes over a panel circling in front
-        # of the opening for 10 s.
+        # of the opening for 10 s; its hands steady near contact during a takeover, as they
+        # do when it demonstrates.
         OperatorProfile("attentive", grasp_settle_steps=10, acquire_patience_steps=20,
                         seat_after_insertion_takeover=True, wedge_steps=10, stall_steps=10,
-                        patience_steps=150, hover_steps=100, suction_cue_in_opening=False),
+                        patience_steps=150, hover_steps=100, suction_cue_in_opening=False,
+                        steady_near_contact=True),
         OperatorProfile(
             "novice", demo_speed=0.45, motion_noise=0.08, hesitation_rate=0.02,
             phase_hesitation=0.8, hesitation_max_steps=10, align_error_mm=2.0,

@@ -65,7 +65,8 @@ import numpy as np
 from window_bench.envs import scene as S
 from window_bench.envs.env import STATE_KEYS
 from window_bench.installer.scripted import ScriptedInstaller
-from window_bench.installer.operators import OperatorProfile, OUNoise, get_operator
+from window_bench.installer.operators import (FINE_NOISE_SCALE, FINE_PHASES, OperatorProfile,
+                                              OUNoise, get_operator)
 
 #: Sizes of the state observation fields, in ``STATE_KEYS`` order (the flat layout).
 STATE_SIZES = {"robot0_joint_pos": 7, "robot0_joint_vel": 7, "robot0_eef_pos": 3,
@@ -327,5 +328,6 @@ class InstallerSupervisor:
     def _installer_action(self, obs) -> tuple[np.ndarray, str]:
         self.steps_in += 1
         a = self.installer.act(obs).astype(np.float64)
-        a[:6] = np.clip(a[:6] + self.noise(), -1.0, 1.0)
+        steady = self.profile.steady_near_contact and self.installer.phase in FINE_PHASES
+        a[:6] = np.clip(a[:6] + (FINE_NOISE_SCALE if steady else 1.0) * self.noise(), -1.0, 1.0)
         return a.astype(np.float32), self.active
