@@ -367,6 +367,38 @@ def test_takeover_recovers_a_wedged_straight_push():
     assert 0 < r["takeover_fraction"] < 1
 
 
+@pytest.mark.parametrize("steady", [True, False])
+def test_steady_hands_near_contact_let_a_takeover_seat(steady):
+    """On the insertion alone (compliant arm), the straight push wedges and the attentive
+    installer takes over through to the seat. With its hands steady near contact (the
+    takeover noise at a fifth while it aligns, inserts, recovers or seats) the takeover
+    seats the panel; with full noise throughout (the same seed) it does not."""
+    import dataclasses
+
+    from window_bench.installer.scripted import CONTROLLERS
+
+    env_id = "WindowInstall-Insert-Compliant-v0"
+    env = gym.make(env_id, obs_mode="flat")
+    push = CONTROLLERS["straight_push"](env)
+
+    class Push:
+        h = 10
+
+        def reset(self, seed=None):
+            push.reset(seed)
+
+        def act(self, obs):
+            return np.asarray(push.act(obs), np.float32)[None]
+
+    profile = dataclasses.replace(get_operator("attentive"), steady_near_contact=steady)
+    sup = InstallerSupervisor(profile)
+    log = Rollout(env, Push(), supervisor=sup, env_id=env_id, operator="attentive").run(
+        seed=1, episode_id=1)
+    env.close()
+    assert [cue for _, cue, kind in sup.events] == ["wedging"]
+    assert bool(log.terminated[-1]) is steady
+
+
 # ---------------------------------------------------------------- profiles, demos
 def test_operator_profiles():
     assert set(OPERATORS) == {"expert", "average", "novice", "attentive"}
