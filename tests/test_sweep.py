@@ -149,10 +149,11 @@ def test_stage1_key_covers_every_agent_with_a_stage_i_on_both_tracks():
     for kind in kinds:
         pixel = get_track("pixels").agent_kind(kind)
         assert code(kind, "state") == _source_sha256(f"baselines.{kind}",
-                                                     "window_bench.data.replay")
+                                                     "window_bench.data.replay",
+                                                     "window_bench.data.chunks")
         assert code(pixel, "pixels") == _source_sha256(
             f"baselines.{kind}", "window_bench.pixels.agent", "window_bench.pixels.encoder",
-            "window_bench.data.replay")
+            "window_bench.data.replay", "window_bench.data.chunks")
     for kind, track in (("sac", "state"), ("sac-pixels", "pixels")):
         with pytest.raises(ValueError, match=f"'{kind}' has no Stage I"):
             key_material(kind, track, {}, 1, 1, "d", 0)

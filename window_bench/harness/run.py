@@ -250,9 +250,8 @@ class Run:
                 "provenance_start": provenance()}
 
     def _make_replays(self, demos) -> None:
-        """D_demo (with room for the takeover segments of agents that add them) and D_online,
-        as chunk replays on the method's grid (D_demo's windows every
-        ``agent.demo_chunk_stride`` steps where the agent asks for denser ones)."""
+        """D_demo (with room for the takeover segments of agents that add them; windows every
+        ``agent.demo_chunk_stride`` steps if set) and D_online, chunk replays on the grid."""
         from window_bench.data.replay import ChunkReplay
 
         h, p, gamma = self.method.h, self.profile, self.agent.gamma
@@ -261,8 +260,7 @@ class Run:
         if self.agent.takeovers_to_demo:
             demo_chunks += p.budget_steps
         half = self.observation.replay_half_obs   # e.g. feature maps stored as float16
-        self.demo_rb = ChunkReplay(demo_chunks, h, gamma, seed=self.seed, half_obs=half,
-                                   stride=stride)
+        self.demo_rb = ChunkReplay(demo_chunks, h, gamma, self.seed, half, stride)
         for ep in demos:
             self.demo_rb.add_episode(ep)
         self.online_rb = ChunkReplay(p.budget_steps // h + 2 * p.max_episode_steps, h, gamma,
