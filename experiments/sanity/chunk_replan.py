@@ -22,6 +22,9 @@ from pathlib import Path
 
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from rollout_args import env_errors, episodes_errors, out_errors  # noqa: E402
+
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -33,17 +36,10 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="JSON file to write (not overwritten)")
     args = p.parse_args(argv)
 
-    import window_bench
     from window_bench.harness.evaluation import _eval_episode, load_policy_file, provenance
     from window_bench.harness.seeds import DEV_SEED0
 
-    errs = []
-    if args.env not in window_bench.ENV_IDS:
-        errs.append(f"--env {args.env!r}; allowed: {', '.join(window_bench.ENV_IDS)}")
-    if not 1 <= args.episodes <= 500:
-        errs.append(f"--episodes {args.episodes}; allowed: 1..500")
-    if Path(args.out).exists():
-        errs.append(f"--out {args.out} exists; choose another file")
+    errs = env_errors(args.env) + episodes_errors(args.episodes) + out_errors(args.out)
     if errs:
         print("error: " + "; ".join(errs), file=sys.stderr)
         return 2

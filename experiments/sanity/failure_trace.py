@@ -17,6 +17,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from rollout_args import env_errors, episodes_errors, out_errors  # noqa: E402
+
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -27,7 +30,6 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     import gymnasium as gym
 
-    import window_bench
     from window_bench.envs import scene as S
     from window_bench.envs.task import FAILURE_MODE_NAMES
     from window_bench.harness.evaluation import AgentPolicy, load_policy_file, provenance
@@ -35,13 +37,7 @@ def main(argv=None) -> int:
     from window_bench.installer.rollout import Rollout
     from window_bench.installer.supervisor import FLAT_SLICES
 
-    errs = []
-    if args.env not in window_bench.ENV_IDS:
-        errs.append(f"--env {args.env!r}; allowed: {', '.join(window_bench.ENV_IDS)}")
-    if not 1 <= args.episodes <= 500:
-        errs.append(f"--episodes {args.episodes}; allowed: 1..500")
-    if Path(args.out).exists():
-        errs.append(f"--out {args.out} exists; choose another file")
+    errs = env_errors(args.env) + episodes_errors(args.episodes) + out_errors(args.out)
     if errs:
         print("error: " + "; ".join(errs), file=sys.stderr)
         return 2

@@ -23,6 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from rollout_args import env_errors, out_errors  # noqa: E402
+
 #: Ridge strengths tried (on z-scored inputs); the best held-out one is reported per input.
 LAMBDAS = (1.0, 10.0, 100.0, 1000.0, 10000.0)
 NEAR_SEAT_M = 0.1
@@ -48,10 +51,10 @@ def main(argv=None) -> int:
     p.add_argument("--cache", required=True, help="the pixel-demo cache the run used")
     p.add_argument("--out", required=True, help="JSON file to write (not overwritten)")
     args = p.parse_args(argv)
-    if Path(args.out).exists():
-        print(f"error: --out {args.out} exists; choose another file", file=sys.stderr)
+    errs = env_errors(args.env) + out_errors(args.out)
+    if errs:
+        print("error: " + "; ".join(errs), file=sys.stderr)
         return 2
-    import window_bench
     from window_bench.envs import scene as S
     from window_bench.harness.evaluation import load_policy_file, provenance
     from window_bench.installer.demos import load_or_collect_demos
@@ -60,10 +63,6 @@ def main(argv=None) -> int:
     from window_bench.pixels.demo_cache import cached_pixel_demos
     from window_bench.pixels.weights import resolve_backbone
 
-    if args.env not in window_bench.ENV_IDS:
-        print(f"error: --env {args.env!r}; allowed: {', '.join(window_bench.ENV_IDS)}",
-              file=sys.stderr)
-        return 2
     torch.set_num_threads(1)
     cls, policy, _ = load_policy_file(args.policy)
     if getattr(cls, "track", "state") != "pixels":

@@ -47,6 +47,17 @@ def _check_args(h, gamma) -> tuple[int, float]:
     return int(h), float(gamma)
 
 
+def check_stride(stride, h: int) -> int:
+    """Where windows start, as an int: every ``stride`` steps (``None``: ``h``, the grid);
+    ``ValueError`` outside ``1..h``."""
+    stride = h if stride is None else stride
+    if isinstance(stride, bool) or not isinstance(stride, numbers.Integral) \
+            or not 1 <= stride <= h:
+        raise ValueError(f"stride = {stride!r} is not allowed: windows start every 1..h = "
+                         f"{h} steps")
+    return int(stride)
+
+
 def chunk_transitions(episode: EpisodeLog, h: int, gamma: float,
                       stride: int | None = None) -> dict[str, np.ndarray]:
     """Chunked transitions of one episode on the fixed grid ``t = k*h`` (Eq. 4).
@@ -78,12 +89,7 @@ def chunk_transitions(episode: EpisodeLog, h: int, gamma: float,
     invalid episode (:meth:`EpisodeLog.validate`).
     """
     h, gamma = _check_args(h, gamma)
-    stride = h if stride is None else stride
-    if isinstance(stride, bool) or not isinstance(stride, numbers.Integral) \
-            or not 1 <= stride <= h:
-        raise ValueError(f"stride = {stride!r} is not allowed: windows start every 1..h = "
-                         f"{h} steps")
-    stride = int(stride)
+    stride = check_stride(stride, h)
     if not isinstance(episode, EpisodeLog):
         raise TypeError(f"episode must be an EpisodeLog, got {type(episode).__name__}")
     episode.validate()

@@ -44,7 +44,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, RandomSampler, ReplayBuffer, RoundRobinWriter
 
-from window_bench.data.chunks import _check_args, chunk_transitions
+from window_bench.data.chunks import _check_args, check_stride, chunk_transitions
 from window_bench.data.steplog import EpisodeLog
 
 #: ``provenance_mix`` string -> stored ``provenance_code`` (0 marks a padded step).
@@ -119,10 +119,7 @@ class ChunkReplay:
         self.capacity = _check_count("capacity", capacity, 1)
         self.h, self.gamma = _check_args(h, gamma)
         #: Windows start every ``stride`` steps of an episode (``h``: the paper's grid).
-        self.stride = self.h if stride is None else _check_count("stride", stride, 1)
-        if self.stride > self.h:
-            raise ValueError(f"stride = {stride!r} is not allowed: windows start every 1..h = "
-                             f"{self.h} steps")
+        self.stride = check_stride(stride, self.h)
         self.seed = _check_count("seed", seed, 0)
         self.half_obs = _check_count("half_obs", half_obs, 0)
         self._generator = torch.Generator().manual_seed(self.seed)

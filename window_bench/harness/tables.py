@@ -430,7 +430,7 @@ def _caption(keys) -> str:
                          f"{p.checkpoint_every:,} env steps, the profile's M; only the final "
                          f"checkpoint gets the row's M)")
     parts.append("Observation tracks: " + "; ".join(
-        f"`{t}` = {TRACK_DESCRIPTIONS.get(t, t)}" for t in sorted({k.track for k in keys})))
+        f"`{t}` = {_track_description(t)}" for t in sorted({k.track for k in keys})))
     text = ". ".join(parts) + "."
     if any(k.seed_set == "dev" for k in keys):
         text += (" Rows marked *dev* were measured on the development seeds 100000… that our "
@@ -445,13 +445,12 @@ def _group_rows(rows, setting: str, only=None, panel: str = "0.5x0.5"):
     return sorted(keys, key=_order)
 
 
-TRACK_DESCRIPTIONS = {
-    "state": f"{get_track('state').label} (the 52-float simulator state, with the panel's exact "
-             "pose relative to the seat: not what the paper's agents observe)",
-    "pixels": "the paper's observation: wrist and side RGB views (128 x 128) through the frozen "
-              "ResNet-10, and 18 proprioceptive values (see [the pixel track](../pixels.md))",
-    "pixels-seat": "the pixel track with two fixed cameras on opposite corners of the opening "
-                   "in place of the wrist and side views (see [the pixel track](../pixels.md))"}
+def _track_description(name: str) -> str:
+    """What a table's note says of an observation track: the track's own description."""
+    try:
+        return get_track(name).description
+    except ValueError:     # a track no longer registered: its name
+        return name
 
 
 def _mark(key: RowKey) -> str:

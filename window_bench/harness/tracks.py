@@ -66,6 +66,9 @@ class Track:
 
     name = DEFAULT_TRACK
     label = "privileged state"
+    #: One sentence for the tables' notes (Markdown, links relative to the results pages).
+    description = ("privileged state (the 52-float simulator state, with the panel's exact pose "
+                   "relative to the seat: not what the paper's agents observe)")
 
     def agent_kind(self, kind: str) -> str:
         """The agent kind that runs a method whose agent is ``kind`` on this track."""

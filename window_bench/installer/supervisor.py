@@ -90,6 +90,7 @@ def fine_pose_features(obs, mm: float, deg: float):
     rot = obs[..., FLAT_SLICES["window_rot_rel"]] / float(np.deg2rad(deg))
     return torch.tanh(torch.cat([pos, rot], dim=-1))
 
+
 def check_fine_pose(owner: str, mm, deg) -> None:
     """The fine pose scales a learner's config may hold: ``mm`` in [0, 1000] (0: off),
     ``deg`` in (0, 90]; ``ValueError`` naming ``owner`` (e.g. ``"ACTConfig"``) otherwise."""

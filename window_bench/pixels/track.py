@@ -33,6 +33,9 @@ class PixelTrack(Track):
 
     name = "pixels"
     label = "pixels (2 x RGB 128² + proprioception)"
+    description = ("the paper's observation: wrist and side RGB views (128 x 128) through the "
+                   "frozen ResNet-10, and 18 proprioceptive values (see [the pixel "
+                   "track](../pixels.md))")
     #: The camera set this track renders (:mod:`window_bench.pixels.cameras`).
     cameras = "paper"
     #: What every pixel agent adds to its state-track learner's Stage I: the front end
@@ -75,6 +78,8 @@ class SeatPixelTrack(PixelTrack):
 
     name = "pixels-seat"
     label = "pixels, seat cameras (2 x RGB 128² + proprioception)"
+    description = ("the pixel track with two fixed cameras on opposite corners of the opening "
+                   "in place of the wrist and side views (see [the pixel track](../pixels.md))")
     cameras = "seat"
 
 
