@@ -60,6 +60,7 @@ class AgentSpec:
     obs_mean: np.ndarray | None = None   # demo statistics (None for own_normalizer agents)
     obs_std: np.ndarray | None = None
     overrides: dict = field(default_factory=dict)   # ``--agent-config KEY=VALUE``
+    front_end: dict | None = None   # fixed parts the track gives its agents (a pose read-out)
 
 
 class Agent(ABC):
@@ -175,16 +176,19 @@ class Agent(ABC):
 
 
 # ---------------------------------------------------------------------------- building one
-def make_agent(method, profile, demos: list, seed: int, overrides: dict | None = None) -> Agent:
+def make_agent(method, profile, demos: list, seed: int, overrides: dict | None = None,
+               front_end: dict | None = None) -> Agent:
     """A fresh learner for ``method`` (a :class:`~window_bench.harness.methods.Method`; its
     class from the registry) with the ``profile``'s sizes; ``overrides`` replace fields of the
-    agent's config (``bench run --agent-config KEY=VALUE``)."""
+    agent's config (``bench run --agent-config KEY=VALUE``); ``front_end``: what the run's
+    track gives its agents (:attr:`~window_bench.harness.tracks.RunObservation.front_end`)."""
     cls = agent_class(method.agent)
     obs = np.concatenate([ep.observations for ep in demos])
     mean, std = (None, None) if cls.own_normalizer else obs_normalizer(obs)
     return cls.create(AgentSpec(obs_dim=int(obs.shape[1]), action_dim=ACTION_DIM, h=method.h,
                                 seed=seed, profile=profile, demos=demos, obs_mean=mean,
-                                obs_std=std, overrides=dict(overrides or {})))
+                                obs_std=std, overrides=dict(overrides or {}),
+                                front_end=front_end))
 
 
 def obs_normalizer(obs: np.ndarray, floor: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:

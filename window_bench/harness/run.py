@@ -215,8 +215,7 @@ class Run:
         return self._observed_demos
 
     def _observe_demos(self, eps: list) -> list:
-        """D_demo as the track observes it; a cache of re-observed demos inside the run is
-        the run's: listed, and checked before it is read."""
+        """D_demo as the track observes it; a demo cache inside the run is listed, checked."""
         cache = self.observation.demos_cache(self.pixel_demos_cache, self.demos_root)
         inside = None
         if cache is not None and cache.resolve().is_relative_to(self.out.resolve()):
@@ -237,7 +236,8 @@ class Run:
     def _fresh(self) -> dict:
         torch.manual_seed(self.seed)
         demos = self._demos()
-        self.agent = make_agent(self.method, self.profile, demos, self.seed, self.agent_config)
+        self.agent = make_agent(self.method, self.profile, demos, self.seed, self.agent_config,
+                                self.observation.front_end)
         self.observation.configure(self.agent)
         self.agent.attach_demos(demos)
         self._make_replays(demos)

@@ -27,6 +27,8 @@ class RunObservation:
 
     #: Leading observation values the replays store as float16 (a track's feature maps).
     replay_half_obs = 0
+    #: Fixed parts the track gives a fresh agent (``AgentSpec.front_end``), or None.
+    front_end: dict | None = None
 
     def __init__(self, track: "Track"):
         #: What ``results.json`` records of the observation (its ``encoder``).

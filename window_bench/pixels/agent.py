@@ -36,8 +36,8 @@ import torch
 from window_bench.harness.agent import (Agent, AgentSpec, load_optimizer_state, module_state,
                                         optimizer_state)
 from window_bench.pixels.cameras import DEFAULT_CAMERAS, saved_cameras
-from window_bench.pixels.encoder import (FEATURE_VALUES, OBS_DIM, PROPRIO_DIM, VIEW_FEATURES,
-                                         VIEWS, PixelObsEncoder)
+from window_bench.pixels.encoder import (EMBED_DIM, FEATURE_VALUES, OBS_DIM, PROPRIO_DIM,
+                                         VIEW_FEATURES, VIEWS, PixelObsEncoder)
 
 #: Index of the vacuum flag in the flat pixel observation: the last proprioceptive value
 #: (``robot0_proprio`` = joint positions, joint velocities, end-effector position, vacuum).
@@ -71,10 +71,11 @@ class PixelAgent(Agent):
     #: ``"module:Class"`` of the state-track learner behind the front end.
     inner = ""
 
-    def _build(self, seed: int, proprio_mean, proprio_std, make_agent, lr: float) -> None:
+    def _build(self, seed: int, proprio_mean, proprio_std, make_agent, lr: float,
+               pose_readout=None) -> None:
         self.obs_dim = OBS_DIM
-        self.encoder = PixelObsEncoder(seed, proprio_mean, proprio_std)
-        self.agent = make_agent(PixelObsEncoder.out_dim)
+        self.encoder = PixelObsEncoder(seed, proprio_mean, proprio_std, pose_readout)
+        self.agent = make_agent(self.encoder.out_dim)
         self.encoder_optimizer = torch.optim.Adam(self.encoder.parameters(), lr=lr)
 
     @classmethod
@@ -93,8 +94,34 @@ class PixelAgent(Agent):
 
     @classmethod
     def create(cls, spec: AgentSpec) -> "PixelAgent":
+        """``spec.front_end``: the track's ``{"pose_readout": PoseReadout}``, if it has one."""
         stats = check_pixel_spec(cls.__name__, spec)
-        return cls(cls.make_config(spec.h, spec.profile, spec.overrides), spec.seed, *stats)
+        readout = (spec.front_end or {}).get("pose_readout")
+        return cls(cls.make_config(spec.h, spec.profile, spec.overrides), spec.seed, *stats,
+                   pose_readout=readout)
+
+    @staticmethod
+    def saved_readout(encoder_state: dict):
+        """The fixed pose read-out a saved encoder state holds, or None."""
+        from window_bench.pixels.pose_readout import PoseReadout
+
+        prefix = "pose_readout."
+        part = {k[len(prefix):]: v for k, v in encoder_state.items() if k.startswith(prefix)}
+        return PoseReadout.from_state(part) if part else None
+
+    def hyperparameters(self) -> dict:
+        """The learner's configuration; with a pose read-out, also the sha256 of its
+        weights (so a Stage I cached without it, or with another, is not reused)."""
+        out = super().hyperparameters()
+        readout = self.encoder.pose_readout
+        if readout is not None:
+            import hashlib
+
+            h = hashlib.sha256()
+            for t in (readout.weight, readout.bias, readout.scale):
+                h.update(t.numpy().tobytes())
+            out["pose_readout_sha256"] = h.hexdigest()
+        return out
 
     @property
     def config(self):
@@ -144,7 +171,8 @@ class PixelAgent(Agent):
 
     @classmethod
     def from_state_dict(cls, sd: dict) -> "PixelAgent":
-        out = cls(cls.config_of(sd["agent"]), seed=sd["agent"]["seed"])
+        out = cls(cls.config_of(sd["agent"]), seed=sd["agent"]["seed"],
+                  pose_readout=cls.saved_readout(sd["encoder"]))
         out.load_state_dict(sd)
         return out
 
@@ -154,7 +182,8 @@ class PixelAgent(Agent):
 
     @classmethod
     def from_policy_state_dict(cls, sd: dict) -> "PixelAgent":
-        out = cls(cls.config_of(sd["agent"]), seed=sd["agent"]["seed"])
+        out = cls(cls.config_of(sd["agent"]), seed=sd["agent"]["seed"],
+                  pose_readout=cls.saved_readout(sd["encoder"]))
         out.agent = cls.inner_class().from_policy_state_dict(sd["agent"])
         out.encoder.load_state_dict(sd["encoder"])
         out.encoder_weights = sd.get("encoder_weights")
@@ -168,12 +197,13 @@ class PixelQCFQL(PixelAgent):
 
     inner = "baselines.qcfql:QCFQLAgent"
 
-    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None):
+    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None,
+                 pose_readout=None):
         from baselines.qcfql import QCFQLAgent, QCFQLConfig
 
         config = QCFQLConfig() if config is None else config
         self._build(seed, proprio_mean, proprio_std,
-                    lambda dim: QCFQLAgent(dim, 7, config, seed=seed), config.lr)
+                    lambda dim: QCFQLAgent(dim, 7, config, seed=seed), config.lr, pose_readout)
 
     @classmethod
     def config_of(cls, inner_state: dict):
@@ -229,12 +259,14 @@ class PixelHILSERL(PixelAgent):
     inner = "baselines.hilserl:HILSERLAgent"
     takeovers_to_demo = True
 
-    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None):
+    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None,
+                 pose_readout=None):
         from baselines.hilserl import HILSERLAgent, HILSERLConfig
 
         config = HILSERLConfig() if config is None else config
         self._build(seed, proprio_mean, proprio_std,
-                    lambda dim: HILSERLAgent(dim, 7, config, seed=seed), config.critic_lr)
+                    lambda dim: HILSERLAgent(dim, 7, config, seed=seed), config.critic_lr,
+                    pose_readout)
 
     @classmethod
     def config_of(cls, inner_state: dict):
@@ -315,12 +347,13 @@ class PixelACT(PixelAgent):
 
     inner = "baselines.act:ACTAgent"
 
-    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None):
+    def __init__(self, config=None, seed: int = 0, proprio_mean=None, proprio_std=None,
+                 pose_readout=None):
         from baselines.act import ACT_PROFILES, ACTAgent
 
         config = ACT_PROFILES["paper"] if config is None else config
         self._build(seed, proprio_mean, proprio_std,
-                    lambda dim: ACTAgent(dim, 7, config, seed=seed), config.lr)
+                    lambda dim: ACTAgent(dim, 7, config, seed=seed), config.lr, pose_readout)
         self.encoder_optimizer = torch.optim.AdamW(self.encoder.parameters(), lr=config.lr,
                                                    weight_decay=config.weight_decay)
 
@@ -336,7 +369,7 @@ class PixelACT(PixelAgent):
     def create(cls, spec: AgentSpec) -> "PixelACT":
         agent = super().create(spec)
         actions = np.concatenate([np.asarray(ep.actions) for ep in spec.demos]).astype(np.float64)
-        dim = PixelObsEncoder.out_dim
+        dim = agent.encoder.out_dim
         agent.agent.norm = {
             "obs_mean": torch.zeros(dim), "obs_std": torch.ones(dim),
             "act_mean": torch.tensor(actions.mean(0), dtype=torch.float32),
@@ -356,9 +389,11 @@ class PixelACT(PixelAgent):
 
     @staticmethod
     def tokens(emb: torch.Tensor) -> torch.Tensor:
-        """Front-end output (view embeddings, proprioception) -> ACT's order (robot token
-        first, then the image token)."""
-        return torch.cat([emb[:, -PROPRIO_DIM:], emb[:, :-PROPRIO_DIM]], dim=1)
+        """Front-end output (view embeddings, proprioception[, pose read-out]) -> ACT's order:
+        the robot token (proprioception) first, then the image token (the embeddings and
+        the pose the views show)."""
+        n = len(VIEWS) * EMBED_DIM
+        return torch.cat([emb[:, n:n + PROPRIO_DIM], emb[:, :n], emb[:, n + PROPRIO_DIM:]], dim=1)
 
     def attach_demos(self, demos) -> None:
         """ACT's chunk stack of D_demo (actions, padding, offsets; its observations are the

@@ -2,6 +2,7 @@
 
     bench encoder train --out window_bench/pixels/assets/resnet10_window.safetensors --force
     bench encoder info  PATH      # loads PATH as the pixel track would; prints its record
+    bench encoder readout --out window_bench/pixels/assets/pose_readout_seat.safetensors --force
 """
 
 from __future__ import annotations
@@ -86,6 +87,43 @@ def cmd_encoder_info(args) -> int:
     return 0
 
 
+def cmd_encoder_readout(args) -> int:
+    import torch
+
+    from window_bench.harness.files import sha256_file
+    from window_bench.pixels.pose_readout import fit_pose_readout
+    from window_bench.pixels.weights import DEFAULT_WEIGHTS, WeightsError, resolve_backbone
+
+    why = cannot_render()
+    if why is not None:
+        print(f"error: {why}", file=sys.stderr)
+        return 2
+    try:
+        backbone, _ = resolve_backbone(args.weights)
+    except (WeightsError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    torch.set_num_threads(1)
+    command = (f"bench encoder readout --env {' '.join(args.env)} --episodes {args.episodes} "
+               f"--heldout-episodes {args.heldout_episodes} --align-error-mm "
+               f"{args.align_error_mm:g} --align-error-deg {args.align_error_deg:g} --near-mm "
+               f"{args.near_mm:g} --cameras {args.cameras} --fine-pose-mm {args.fine_pose_mm:g} "
+               f"--fine-pose-deg {args.fine_pose_deg:g} --seed {args.seed}")
+    record = fit_pose_readout(
+        args.out, backbone, sha256_file(args.weights or DEFAULT_WEIGHTS), env_ids=args.env,
+        episodes=args.episodes, heldout_episodes=args.heldout_episodes,
+        align_error_mm=args.align_error_mm, align_error_deg=args.align_error_deg,
+        near_mm=args.near_mm, cameras=args.cameras, mm=args.fine_pose_mm,
+        deg=args.fine_pose_deg, seed=args.seed, command=command)
+    print(f"wrote {args.out} ({record['bytes'] / 1e6:.2f} MB): {record['train_frames']} "
+          f"training frames, ridge penalties {record['ridge_lambda']}")
+    for env_id, q in record["heldout_quality"].items():
+        print(f"{env_id}: held-out RMSE position (mm) {q['rmse_pos_mm']} (spread "
+              f"{q['std_pos_mm']}), rotation (deg) {q['rmse_rot_deg']} (spread "
+              f"{q['std_rot_deg']}), {q['frames']} frames of {q['episodes']} episodes")
+    return 0
+
+
 def add_encoder_parser(sub) -> None:
     from window_bench import ENV_IDS
 
@@ -112,3 +150,23 @@ def add_encoder_parser(sub) -> None:
                                      "print its training record")
     i.add_argument("path")
     i.set_defaults(func=cmd_encoder_info)
+    from window_bench.pixels.cameras import CAMERA_SETS
+
+    r = esub.add_parser("readout", help="fit the fixed pose read-out of the frozen features "
+                                        "(the pixels-seat track's; docs/pixels.md)")
+    arg.add_out_file(r, "read-out file to write (.safetensors)", required=True)
+    r.add_argument("--env", nargs="+", choices=ENV_IDS, default=["WindowInstall-A-v0"])
+    r.add_argument("--episodes", type=arg.positive, default=192, help="training episodes")
+    r.add_argument("--heldout-episodes", type=arg.positive, default=24)
+    r.add_argument("--align-error-mm", type=_number_in(50.0), default=25.0,
+                   help="the scripted installer's seat estimate is off by up to this (mm)")
+    r.add_argument("--align-error-deg", type=_number_in(10.0), default=1.0)
+    r.add_argument("--near-mm", type=_number_in(1000.0), default=100.0,
+                   help="fit on the steps with the panel this close to the seat")
+    r.add_argument("--cameras", choices=sorted(CAMERA_SETS), default="seat")
+    r.add_argument("--fine-pose-mm", type=_number_in(1000.0), default=10.0)
+    r.add_argument("--fine-pose-deg", type=_number_in(90.0), default=2.0)
+    r.add_argument("--weights", default=None, help="backbone weights (default: the shipped one)")
+    r.add_argument("--seed", type=arg.seed, default=300_000,
+                   help="first training seed (held out: +100,000)")
+    r.set_defaults(func=cmd_encoder_readout)

@@ -178,15 +178,21 @@ def split_observation(obs: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tens
 class PixelObsEncoder(nn.Module):
     """Trainable part of the observation encoder: per-view aggregation of the cached
     backbone features, concatenated with the normalised proprioception
-    (``2 x 32 + 18 = 82`` values, the input of the actor, critic and teacher MLPs).
+    (``2 x 32 + 18 = 82`` values, the input of the actor, critic and teacher MLPs); with a
+    ``pose_readout``, its 6 fine pose features after them (88 values).
 
     ``proprio_mean`` / ``proprio_std`` fix the proprioception's normaliser (the harness
     computes them from the demonstrations); default identity."""
 
     out_dim = len(VIEWS) * EMBED_DIM + PROPRIO_DIM
 
-    def __init__(self, seed: int = 0, proprio_mean=None, proprio_std=None):
+    def __init__(self, seed: int = 0, proprio_mean=None, proprio_std=None, pose_readout=None):
         super().__init__()
+        #: A fixed :class:`~window_bench.pixels.pose_readout.PoseReadout` whose 6 fine pose
+        #: features follow the 82 values (``out_dim`` 88), or None.
+        self.pose_readout = pose_readout
+        if pose_readout is not None:
+            self.out_dim = type(self).out_dim + pose_readout.scale.numel()
         gen = torch.Generator().manual_seed(int(seed))
         self.views = nn.ModuleList([ViewAggregation(gen) for _ in VIEWS])
         mean = np.zeros(PROPRIO_DIM) if proprio_mean is None else np.asarray(proprio_mean)
@@ -209,7 +215,11 @@ class PixelObsEncoder(nn.Module):
         weights = weights or [None] * len(self.views)
         embeds = [agg(m, w) for agg, m, w in zip(self.views, maps, weights)]
         x = ((proprio - self.proprio_mean) / self.proprio_std).clamp(-10.0, 10.0)
-        return torch.cat([*embeds, x], dim=-1)
+        if self.pose_readout is None:
+            return torch.cat([*embeds, x], dim=-1)
+        with torch.no_grad():
+            pose = self.pose_readout(torch.cat([*(m.flatten(1) for m in maps), proprio], 1))
+        return torch.cat([*embeds, x, pose], dim=-1)
 
     def encode_pair(self, obs: torch.Tensor,
                     next_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -38,6 +38,8 @@ class PixelTrack(Track):
                    "track](../pixels.md))")
     #: The camera set this track renders (:mod:`window_bench.pixels.cameras`).
     cameras = "paper"
+    #: The fixed pose read-out its agents see (:mod:`window_bench.pixels.pose_readout`), if any.
+    pose_readout: Path | None = None
     #: What every pixel agent adds to its state-track learner's Stage I: the front end
     #: (aggregation, fusion) and the encoder it trains through.
     front_end_modules = ("window_bench.pixels.agent", "window_bench.pixels.encoder")
@@ -82,6 +84,12 @@ class SeatPixelTrack(PixelTrack):
                    "in place of the wrist and side views (see [the pixel track](../pixels.md))")
     cameras = "seat"
 
+    @property
+    def pose_readout(self) -> Path:
+        from window_bench.pixels.pose_readout import DEFAULT_READOUT
+
+        return DEFAULT_READOUT
+
 
 class PixelObservation(RunObservation):
     """One run on the pixel track. The backbone is resolved when the run is made, so a wrong
@@ -105,6 +113,22 @@ class PixelObservation(RunObservation):
                            **{k: record[k] for k in ("command", "heldout_quality")
                               if k in record})
         self.record["cameras"] = self.cameras
+        if track.pose_readout is not None:
+            self.front_end = {"pose_readout": self._pose_readout(track, path)}
+
+    def _pose_readout(self, track: PixelTrack, weights: Path):
+        """The track's pose read-out, refused in one line unless it was fitted for this
+        backbone and camera set; recorded with its sha256 and held-out quality."""
+        from window_bench.harness.files import sha256_file
+        from window_bench.pixels.pose_readout import load_pose_readout
+
+        readout, record = load_pose_readout(track.pose_readout, sha256_file(weights),
+                                            self.cameras)
+        self.record["pose_readout"] = {
+            "file": track.pose_readout.name, "sha256": sha256_file(track.pose_readout),
+            **{k: record[k] for k in ("command", "heldout_quality", "fine_pose_mm",
+                                      "fine_pose_deg")}}
+        return readout
 
     def demos_cache(self, cache_dir: Path | None, demos_root: Path) -> Path:
         from window_bench.pixels.demo_cache import DEFAULT_SUBDIR
