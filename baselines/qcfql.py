@@ -183,6 +183,14 @@ class QCFQLConfig:
     fine_pose_deg: float = 1.0
     """Angle scale of the fine rotation features (used when ``fine_pose_mm > 0``)."""
 
+    observed_keys: tuple[str, ...] | None = None
+    """A diagnostic of what the privileged state gives the learner (state track, not in the
+    paper): ``None``, every key of the flat state; else only these keys of
+    :data:`~window_bench.envs.env.STATE_KEYS` reach the networks, the others enter as zeros
+    (e.g. ``["robot0_proprio"]`` with ``fine_pose_mm`` is what a pixel agent with an exact
+    pose read-out observes, less its view embeddings). The fine pose features are computed
+    from the whole state."""
+
     takeover_value: float | None = None
     """The critic's target for a chunk of the policy's at whose end the installer takes over
     on a safety cue (``takeover_onset``, :func:`window_bench.data.chunks.chunk_transitions`).
@@ -204,6 +212,10 @@ class QCFQLConfig:
     also trains the trainable aggregation of the camera features, beside the critic's
     (``False``: the critic's alone, as HIL-SERL and DrQ train their encoders). No effect on
     the state track, which has no encoder."""
+
+    view_embeddings: bool = True
+    """Pixel track only, a diagnostic: ``False`` zeroes both views' 32-value embeddings, so
+    the networks see the proprioception and the track's pose read-out alone."""
 
     binary_gripper: bool = False
     """Feed the critic the vacuum command as the env executes it (``+1`` where the last
@@ -245,11 +257,18 @@ class QCFQLConfig:
                 raise ValueError(f"QCFQLConfig.{name} = {value!r} is not allowed: it must be "
                                  f"a real number in {interval}")
         for name in ("normalize_q_loss", "critic_layer_norm", "distill_from_ema",
-                     "binary_gripper", "flow_trains_encoder"):
+                     "binary_gripper", "flow_trains_encoder", "view_embeddings"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"QCFQLConfig.{name} = {getattr(self, name)!r} is not "
                                  f"allowed: it must be true or false")
         check_fine_pose("QCFQLConfig", self.fine_pose_mm, self.fine_pose_deg)
+        if self.observed_keys is not None:
+            from window_bench.envs.env import STATE_KEYS
+
+            bad = [k for k in self.observed_keys if k not in STATE_KEYS]
+            if bad or not self.observed_keys:
+                raise ValueError(f"QCFQLConfig.observed_keys = {self.observed_keys!r} is not "
+                                 f"allowed: a non-empty list of {', '.join(STATE_KEYS)}")
         if self.q_agg not in ("mean", "min"):
             raise ValueError(f"QCFQLConfig.q_agg = {self.q_agg!r} is not allowed: use 'mean' "
                              f"or 'min'")
@@ -510,10 +529,24 @@ class QCFQLAgent(Agent):
         bounded input instead of thousands of standard deviations. With ``fine_pose_mm`` the
         fine pose features follow (:class:`QCFQLConfig`)."""
         z = ((obs - self.obs_mean) / self.obs_std).clamp(-OBS_CLIP, OBS_CLIP)
+        if self.config.observed_keys is not None:
+            z = z * self._observed_mask(z.shape[-1])
         if not self.config.fine_pose_mm:
             return z
         fine = fine_pose_features(obs, self.config.fine_pose_mm, self.config.fine_pose_deg)
         return torch.cat([z, fine.to(z.dtype)], dim=-1)
+
+    def _observed_mask(self, dim: int) -> torch.Tensor:
+        """1 on the flat state's columns of ``config.observed_keys``, 0 elsewhere."""
+        from window_bench.installer.supervisor import FLAT_DIM, FLAT_SLICES
+
+        if dim != FLAT_DIM:
+            raise ValueError(f"QCFQLConfig.observed_keys needs the flat state observation "
+                             f"({FLAT_DIM} values); obs_dim = {dim}")
+        mask = torch.zeros(dim)
+        for key in self.config.observed_keys:
+            mask[FLAT_SLICES[key]] = 1.0
+        return mask
 
     def _noise(self, batch: int) -> torch.Tensor:
         return torch.randn(batch, self.chunk_dim, generator=self.update_generator)

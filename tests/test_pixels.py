@@ -1007,9 +1007,9 @@ def test_bench_run_on_the_seat_camera_track(tmp_path, monkeypatch, demos_root):
     # the track's fixed pose read-out: recorded, in the policy file, read back from there
     assert saved["encoder"]["pose_readout"]["file"] == "pose_readout_seat.safetensors"
     assert saved["hyperparameters"]["pose_readout_sha256"]
-    assert policy["encoder"]["pose_readout.weight"].shape == (6, OBS_DIM)
+    assert policy["encoder"]["pose_readout.weight"].shape == (6, OBS_DIM)  # 12 features
     from window_bench.harness.methods import agent_class
-    assert agent_class("qcfql-pixels").from_policy_state_dict(policy).encoder.out_dim == 88
+    assert agent_class("qcfql-pixels").from_policy_state_dict(policy).encoder.out_dim == 94
     env = get_track("pixels").eval_env(ENV, policy, observe_every=10)
     assert env.cameras == "seat"
     env.close()

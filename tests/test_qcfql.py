@@ -688,3 +688,28 @@ def test_paper_agent_overrides_name_every_departure_from_the_paper():
         assert getattr(ours, name) != value, name   # a real departure, not a no-op
         assert getattr(paper, name) == value
     assert (paper.alpha, paper.distill_reduction, paper.flow_steps) == (300.0, "sum", 10)
+
+
+def test_observed_keys_hide_the_rest_of_the_state_from_the_networks():
+    """``observed_keys``: only those keys of the flat state reach the networks (the rest as
+    zeros); the fine pose features still read the whole state; a saved policy keeps the
+    setting; an unknown key is refused in one line."""
+    from window_bench.harness.agent import config_from_plain
+    from window_bench.installer.supervisor import FLAT_DIM, FLAT_SLICES
+
+    cfg = QCFQLConfig(hidden=(16, 16), observed_keys=("robot0_proprio",), fine_pose_mm=10.0)
+    agent = QCFQLAgent(FLAT_DIM, 7, cfg, seed=0)
+    obs = torch.rand(4, FLAT_DIM) + 0.5
+    z = agent.normalize(obs)
+    keep = torch.zeros(FLAT_DIM, dtype=torch.bool)
+    keep[FLAT_SLICES["robot0_proprio"]] = True
+    assert torch.all(z[:, :FLAT_DIM][:, ~keep] == 0) and torch.all(z[:, :FLAT_DIM][:, keep] != 0)
+    assert z.shape[1] == FLAT_DIM + 6 and torch.all(z[:, FLAT_DIM:] != 0)   # fine pose: whole state
+    again = QCFQLAgent.from_policy_state_dict(agent.policy_state_dict())
+    assert again.config.observed_keys == ("robot0_proprio",)
+    np.testing.assert_array_equal(again.act(obs[0].numpy(), deterministic=True),
+                                  agent.act(obs[0].numpy(), deterministic=True))
+    assert config_from_plain(QCFQLConfig, {"observed_keys": ["window_pos_rel"]}).observed_keys \
+        == ("window_pos_rel",)
+    with pytest.raises(ValueError, match=r"observed_keys = \('nope',\) is not allowed"):
+        QCFQLConfig(observed_keys=("nope",))

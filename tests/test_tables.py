@@ -292,6 +292,11 @@ def test_leaderboard_names_the_track_and_keeps_tracks_apart(tmp_path):
     # another chunk horizon or operator profile never lands on the default run's directory
     r_var = {**r_state, "method": {**r_state["method"], "h": 5}, "operator": "attentive"}
     assert run_dest(r_var, "lb").name == "qcfql-offline-h5-attentive-smoke-s0"
+    # a pose read-out (pixels-seat) is named by its digest, in the directory and the row
+    r_ro = {**r_pix, "encoder": {"pose_readout": {"sha256": "ab12" * 16}}}
+    assert run_dest(r_ro, "lb").name == "qcfql-offline-pixels-readoutab12ab12-smoke-s0"
+    r_odd = {**r_pix, "encoder": {"pose_readout": {"sha256": "../x"}}}
+    assert run_dest(r_odd, "lb").name == "qcfql-offline-pixels-smoke-s0"
     body = leaderboard(runs, readme=None, snippet=None)
     rows = [ln for ln in body.splitlines() if "(`qcfql-offline`)" in ln]
     assert rows[0].startswith("| state | WindowInstall-A-v0 |") and "| 90 [" in rows[0]

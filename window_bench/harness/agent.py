@@ -325,8 +325,8 @@ def config_from_plain(cls, saved: dict, **replace):
     for f in dataclasses.fields(cls):
         if f.name in saved:
             v = saved[f.name]
-            kwargs[f.name] = (tuple(v) if isinstance(v, list)
-                              and isinstance(getattr(defaults, f.name), tuple) else v)
+            as_tuple = isinstance(getattr(defaults, f.name), tuple) or "tuple" in str(f.type)
+            kwargs[f.name] = tuple(v) if isinstance(v, list) and as_tuple else v
     kwargs.update(replace)
     return cls(**kwargs)
 

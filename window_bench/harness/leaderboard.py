@@ -21,6 +21,7 @@ bad file in ``root`` instead of failing on it.
 from __future__ import annotations
 
 import json
+import re
 import os
 import shutil
 import sys
@@ -50,6 +51,13 @@ def _own_h(results: dict) -> int | None:
     return m["h"] if default is not None and m.get("h", default) != default else None
 
 
+def _pose_readout(results: dict) -> str | None:
+    """The first 12 hex digits of the pose read-out a pixel run's agents saw, or None."""
+    readout = (results.get("encoder") or {}).get("pose_readout")
+    sha = readout.get("sha256") if isinstance(readout, dict) else None
+    return sha[:12] if isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha) else None
+
+
 def _operator(results: dict) -> str | None:
     """The run's operator profile where it is not the default, else None."""
     op = results.get("operator", DEFAULT_OPERATOR)
@@ -57,9 +65,9 @@ def _operator(results: dict) -> str | None:
 
 
 def run_dest(results: dict, root: str | os.PathLike) -> Path:
-    """``root/<env>/<method>[-h<h>]<overrides>[-<track>][-<operator>]-<profile>-s<seed>``,
-    checked to stay inside ``root``: a run with another chunk horizon, track or operator
-    profile never lands on the default run of the same method and seed (``-h<h>`` as
+    """``root/<env>/<method>[-h<h>]<overrides>[-<track>][-readout<sha>][-<operator>]-<profile>
+    -s<seed>``, checked to stay inside ``root``: a run with another chunk horizon, track,
+    pose read-out or operator profile never lands on the default run of the same method and seed (``-h<h>`` as
     ``bench sweep`` names its Tables 5/6 cells)."""
     method = results["method"]["name"]
     h, operator = _own_h(results), _operator(results)
@@ -67,6 +75,8 @@ def run_dest(results: dict, root: str | os.PathLike) -> Path:
     tag += override_tag((results.get("agent_config_overrides") or {}).items())
     if _track(results) != DEFAULT_TRACK:
         tag += f"-{_track(results)}"
+    if _pose_readout(results) is not None:
+        tag += f"-readout{_pose_readout(results)[:8]}"
     if operator is not None:
         tag += f"-{operator}"
     name = f"{method}{tag}-{results['profile']['name']}-s{results['seed']}"
@@ -131,6 +141,8 @@ def table(results: list[dict]) -> str:
         extra = "".join(f", {k}={v}" for k, v in (r.get("agent_config_overrides") or {}).items())
         if _operator(r) is not None:
             extra += f", operator {md_text(_operator(r))}"
+        if _pose_readout(r) is not None:
+            extra += f", pose read-out {_pose_readout(r)}"
         who = (f"| {_track(r)} | {r['env_id']} | {md_text(m['label'])} (`{m['name']}`{h}"
                f"{extra}) | {r['profile']['name']} | {r['seed']} |")
         lines.append(

@@ -149,8 +149,8 @@ def results_schema() -> dict:
             "agent_config_overrides": _opt({
                 "type": "object", "propertyNames": {"pattern": FIELD_NAME},
                 "additionalProperties": {"anyOf": [{"type": ["number", "boolean"]}, safe,
-                                                   {"type": "array",
-                                                    "items": {"type": "number"}}]}}),
+                                                   {"type": "array", "items": {"anyOf": [
+                                                       {"type": "number"}, safe]}}]}}),
             "final": {"type": "object",
                       "required": ["success_rate", "wilson95", "episodes", "takeover_minutes",
                                    "sim_hours", "wall_clock_s"],

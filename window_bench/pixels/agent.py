@@ -72,9 +72,10 @@ class PixelAgent(Agent):
     inner = ""
 
     def _build(self, seed: int, proprio_mean, proprio_std, make_agent, lr: float,
-               pose_readout=None) -> None:
+               pose_readout=None, view_embeddings: bool = True) -> None:
         self.obs_dim = OBS_DIM
-        self.encoder = PixelObsEncoder(seed, proprio_mean, proprio_std, pose_readout)
+        self.encoder = PixelObsEncoder(seed, proprio_mean, proprio_std, pose_readout,
+                                       view_embeddings)
         self.agent = make_agent(self.encoder.out_dim)
         self.encoder_optimizer = torch.optim.Adam(self.encoder.parameters(), lr=lr)
 
@@ -203,7 +204,8 @@ class PixelQCFQL(PixelAgent):
 
         config = QCFQLConfig() if config is None else config
         self._build(seed, proprio_mean, proprio_std,
-                    lambda dim: QCFQLAgent(dim, 7, config, seed=seed), config.lr, pose_readout)
+                    lambda dim: QCFQLAgent(dim, 7, config, seed=seed), config.lr, pose_readout,
+                    config.view_embeddings)
 
     @classmethod
     def config_of(cls, inner_state: dict):

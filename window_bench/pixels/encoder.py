@@ -179,20 +179,25 @@ class PixelObsEncoder(nn.Module):
     """Trainable part of the observation encoder: per-view aggregation of the cached
     backbone features, concatenated with the normalised proprioception
     (``2 x 32 + 18 = 82`` values, the input of the actor, critic and teacher MLPs); with a
-    ``pose_readout``, its 6 fine pose features after them (88 values).
+    ``pose_readout``, its 12 pose features after them (94 values).
 
     ``proprio_mean`` / ``proprio_std`` fix the proprioception's normaliser (the harness
     computes them from the demonstrations); default identity."""
 
     out_dim = len(VIEWS) * EMBED_DIM + PROPRIO_DIM
 
-    def __init__(self, seed: int = 0, proprio_mean=None, proprio_std=None, pose_readout=None):
+    def __init__(self, seed: int = 0, proprio_mean=None, proprio_std=None, pose_readout=None,
+                 view_embeddings: bool = True):
         super().__init__()
-        #: A fixed :class:`~window_bench.pixels.pose_readout.PoseReadout` whose 6 fine pose
-        #: features follow the 82 values (``out_dim`` 88), or None.
+        #: False: both views' embeddings enter as zeros (a diagnostic, QC-FQL's config).
+        self.view_embeddings = view_embeddings
+        #: A fixed :class:`~window_bench.pixels.pose_readout.PoseReadout` whose 12 pose
+        #: features follow the 82 values (``out_dim`` 94), or None.
         self.pose_readout = pose_readout
         if pose_readout is not None:
-            self.out_dim = type(self).out_dim + pose_readout.scale.numel()
+            from window_bench.pixels.pose_readout import FEATURES
+
+            self.out_dim = type(self).out_dim + FEATURES
         gen = torch.Generator().manual_seed(int(seed))
         self.views = nn.ModuleList([ViewAggregation(gen) for _ in VIEWS])
         mean = np.zeros(PROPRIO_DIM) if proprio_mean is None else np.asarray(proprio_mean)
@@ -213,7 +218,8 @@ class PixelObsEncoder(nn.Module):
         ``(B, 512, 4, 4)``) map per view and the raw ``(B, 18)`` proprioception; ``weights``:
         the views' :meth:`ViewAggregation.folded_weight`, if computed already."""
         weights = weights or [None] * len(self.views)
-        embeds = [agg(m, w) for agg, m, w in zip(self.views, maps, weights)]
+        embeds = [agg(m, w) if self.view_embeddings else torch.zeros(len(m), EMBED_DIM)
+                  for agg, m, w in zip(self.views, maps, weights)]
         x = ((proprio - self.proprio_mean) / self.proprio_std).clamp(-10.0, 10.0)
         if self.pose_readout is None:
             return torch.cat([*embeds, x], dim=-1)

@@ -16,8 +16,10 @@ pixels. It belongs to one backbone and one camera set; both are recorded and che
 
     bench encoder readout --out window_bench/pixels/assets/pose_readout_seat.safetensors --force
 
-A read-out file is safetensors (``weight`` (6, OBS_DIM), ``bias`` (6,), float32) with its
-fit record in the metadata; a file that is not one, or that belongs to another backbone or
+Far from the seat, where the fine read-out was never fitted, a coarse read-out of the
+proprioception alone takes its place (:class:`PoseReadout`). A read-out file is safetensors
+(``weight`` (6, OBS_DIM), ``bias`` (6,), ``coarse_weight`` (6, 18), ``coarse_bias`` (6,),
+float32) with its fit record in the metadata; a file that is not one, or that belongs to another backbone or
 camera set, is refused in one line (:class:`PoseReadoutError`).
 """
 
@@ -29,9 +31,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
-from window_bench.pixels.encoder import OBS_DIM
+from window_bench.pixels.encoder import OBS_DIM, PROPRIO_DIM
 
 #: The read-out the ``pixels-seat`` track uses (``bench encoder readout`` writes it).
 DEFAULT_READOUT = Path(__file__).with_name("assets") / "pose_readout_seat.safetensors"
@@ -39,7 +42,12 @@ FORMAT = "window-bench pose read-out"
 #: What it estimates: the flat state's ``window_pos_rel`` (m) then ``window_rot_rel`` (rad).
 TARGETS = ("window_pos_rel", "window_rot_rel")
 POSE_DIM = 6
+#: The linear pose features' units: 0.1 m and 0.1 rad. :class:`PoseReadout` gives 12 values.
+POSE_UNITS = 0.1
+FEATURES = 2 * POSE_DIM
 LAMBDAS = (1e-1, 1e0, 1e1, 1e2, 1e3, 1e4)
+#: The fine estimate is fitted this far beyond ``near_mm`` and switched on this far beyond it.
+FIT_MARGIN_MM, SWITCH_MARGIN_MM = 25.0, 15.0
 
 
 class PoseReadoutError(ValueError):
@@ -47,55 +55,75 @@ class PoseReadoutError(ValueError):
 
 
 class PoseReadout(nn.Module):
-    """Flat pixel observations ``(B, OBS_DIM)`` -> 6 fine pose features in (-1, 1):
-    ``tanh`` of the estimated position / ``mm`` and rotation / ``deg``. Buffers only: it is
-    fixed, saved with the policy and never trained."""
+    """Flat pixel observations ``(B, OBS_DIM)`` -> 12 pose features: the estimated position
+    and rotation relative to the seat on a linear scale (in units of :data:`POSE_UNITS`,
+    clipped to +-10, as the state track's z-scored ``window_pos_rel`` / ``window_rot_rel``),
+    then the fine pose features ``tanh(position / mm)``, ``tanh(rotation / deg)``. (On A's
+    dev seeds a state-track policy observing the proprioception and the fine pose features
+    seats 7 of 20, with the linear pose too 12, with the whole state 13.)
 
-    def __init__(self, weight: torch.Tensor, bias: torch.Tensor, mm: float, deg: float):
+    Two linear estimates: the **fine** one reads the whole observation (both views' maps and
+    the proprioception) and is fitted near the seat, where it resolves tenths of a
+    millimetre; the **coarse** one reads the proprioception alone, fitted over whole
+    episodes (centimetres). The fine estimate is used where the coarse one puts the panel
+    within ``switch_m`` of the seat; farther out, where the fine one was never fitted and is
+    meaningless, the coarse one. Buffers only: fixed, saved with the policy, never trained."""
+
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor, coarse_weight: torch.Tensor,
+                 coarse_bias: torch.Tensor, switch_m: float, mm: float, deg: float):
         super().__init__()
-        if tuple(weight.shape) != (POSE_DIM, OBS_DIM) or tuple(bias.shape) != (POSE_DIM,):
-            raise PoseReadoutError(f"pose read-out: weight {tuple(weight.shape)} and bias "
-                                   f"{tuple(bias.shape)}, expected ({POSE_DIM}, {OBS_DIM}) "
-                                   f"and ({POSE_DIM},)")
-        if not (0 < mm <= 1000 and 0 < deg <= 90):
-            raise PoseReadoutError(f"pose read-out scales {mm} mm / {deg} deg: allowed "
-                                   f"(0, 1000] mm and (0, 90] deg")
-        self.register_buffer("weight", weight.float().clone())
-        self.register_buffer("bias", bias.float().clone())
+        shapes = {"weight": (weight, (POSE_DIM, OBS_DIM)), "bias": (bias, (POSE_DIM,)),
+                  "coarse_weight": (coarse_weight, (POSE_DIM, PROPRIO_DIM)),
+                  "coarse_bias": (coarse_bias, (POSE_DIM,))}
+        for name, (t, shape) in shapes.items():
+            if tuple(t.shape) != shape:
+                raise PoseReadoutError(f"pose read-out: {name} of shape {tuple(t.shape)}, "
+                                       f"expected {shape}")
+            self.register_buffer(name, t.float().clone())
+        if not (0 < mm <= 1000 and 0 < deg <= 90 and 0 < switch_m <= 1):
+            raise PoseReadoutError(f"pose read-out scales {mm} mm / {deg} deg / near "
+                                   f"{switch_m} m: allowed (0, 1000] mm, (0, 90] deg, (0, 1] m")
         scale = [1000.0 / mm] * 3 + [1.0 / float(np.deg2rad(deg))] * 3
         self.register_buffer("scale", torch.tensor(scale, dtype=torch.float32))
+        self.register_buffer("switch_m", torch.tensor(float(switch_m), dtype=torch.float32))
 
     @classmethod
     def from_state(cls, state: dict) -> "PoseReadout":
-        """From a saved encoder state's ``pose_readout.*`` tensors."""
-        scale = state["scale"].double()
-        out = cls(state["weight"], state["bias"], 1000.0 / float(scale[0]),
-                  float(np.rad2deg(1.0 / float(scale[3]))))
+        """From a saved encoder state's ``pose_readout.*`` tensors (bit for bit)."""
+        out = cls(state["weight"], state["bias"], state["coarse_weight"], state["coarse_bias"],
+                  float(state["switch_m"]), 10.0, 2.0)
         out.scale.copy_(state["scale"])
+        out.switch_m.copy_(state["switch_m"])
         return out
 
     def estimate(self, obs: torch.Tensor) -> torch.Tensor:
-        """The estimated pose (m, rad), ``(B, 6)``."""
-        return torch.nn.functional.linear(obs.float(), self.weight, self.bias)
+        """The estimated pose (m, rad), ``(B, 6)``: fine near the seat, coarse elsewhere."""
+        obs = obs.float()
+        coarse = F.linear(obs[:, -PROPRIO_DIM:], self.coarse_weight, self.coarse_bias)
+        fine = F.linear(obs, self.weight, self.bias)
+        near = coarse[:, :3].norm(dim=1, keepdim=True) < self.switch_m
+        return torch.where(near, fine, coarse)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(self.estimate(obs) * self.scale)
+        est = self.estimate(obs)
+        return torch.cat([(est / POSE_UNITS).clamp(-10.0, 10.0), torch.tanh(est * self.scale)], 1)
 
 
 # ---------------------------------------------------------------------------- fitting
 def offset_frames(env_id: str, backbone, seeds, align_error_mm: float, align_error_deg: float,
-                  near_m: float, cameras: str) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per scripted episode, the pixel observations (exactly as :class:`PixelFeatures` makes
+                  near_m: float, cameras: str) -> list[tuple[np.ndarray, ...]]:
+    """Per scripted episode: the pixel observations (exactly as :class:`PixelFeatures` makes
     them) and the 6 target values of every step with the panel within ``near_m`` of the
-    seat; only those steps are rendered. The installer's seat estimate is off by a uniform
-    draw of up to ``align_error_mm`` per lateral axis and ``align_error_deg`` per axis."""
+    seat (only those steps are rendered), then the proprioception and the targets of every
+    step. The installer's seat estimate is off by a uniform draw of up to ``align_error_mm``
+    per lateral axis and ``align_error_deg`` per axis."""
     import gymnasium as gym
 
     from window_bench.installer.scripted import ScriptedInstaller
     from window_bench.installer.supervisor import FLAT_SLICES
     from window_bench.pixels.cameras import render_views
-    from window_bench.pixels.features import encode_views
     from window_bench.pixels.encoder import VIEWS
+    from window_bench.pixels.features import encode_views
     from window_bench.pixels.track import privileged_state
 
     env = gym.make(env_id, obs_mode="state")
@@ -104,39 +132,42 @@ def offset_frames(env_id: str, backbone, seeds, align_error_mm: float, align_err
         obs, _ = env.reset(seed=int(seed))
         inst = ScriptedInstaller(env, align_error_mm=align_error_mm,
                                  align_error_deg=align_error_deg, seed=int(seed))
-        xs, ys = [], []
+        xs, ys, props, targets = [], [], [], []
         done = False
         while not done:
             flat = privileged_state(env)
-            pos = flat[FLAT_SLICES["window_pos_rel"]]
-            if np.linalg.norm(pos) < near_m:
+            y = np.concatenate([flat[FLAT_SLICES[k]] for k in TARGETS])
+            props.append(np.asarray(obs["robot0_proprio"], np.float32)), targets.append(y)
+            if np.linalg.norm(y[:3]) < near_m:
                 views = dict(zip(VIEWS, render_views(env, cameras)))
                 xs.append(encode_views(backbone, {**views, "robot0_proprio": obs["robot0_proprio"]}))
-                ys.append(np.concatenate([pos, flat[FLAT_SLICES["window_rot_rel"]]]))
+                ys.append(y)
             obs, _, term, trunc, _ = env.step(inst.act())
             done = term or trunc
         if xs:
-            out.append((np.stack(xs).astype(np.float32), np.stack(ys).astype(np.float64)))
+            out.append((np.stack(xs).astype(np.float32), np.stack(ys).astype(np.float64),
+                        np.stack(props), np.stack(targets).astype(np.float64)))
     env.close()
     return out
 
 
 def ridge(x_tr: np.ndarray, y_tr: np.ndarray, lambdas) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Ridge regressions on standardised inputs, one per penalty in ``lambdas``, solved in the
-    dual form (fewer rows than inputs; one eigendecomposition of the kernel serves every
-    penalty) and returned in the primal: ``(weight (targets, D), bias (targets,))`` each, on
-    the raw inputs."""
+    """Ridge regressions on standardised inputs, one per penalty in ``lambdas``, returned on
+    the raw inputs as ``(weight (targets, D), bias (targets,))`` each. Solved in the dual
+    form when there are fewer rows than inputs (one eigendecomposition of the kernel serves
+    every penalty), else in the primal."""
     x = x_tr.astype(np.float64)
     mu, sd = x.mean(0), x.std(0) + 1e-6
     a = (x - mu) / sd
     y_mu = y_tr.mean(0)
-    evals, evecs = np.linalg.eigh(a @ a.T)
-    proj = evecs.T @ (y_tr - y_mu)
+    dual = len(a) < a.shape[1]
+    evals, evecs = np.linalg.eigh(a @ a.T if dual else a.T @ a)
+    proj = evecs.T @ ((y_tr - y_mu) if dual else a.T @ (y_tr - y_mu))
     out = []
     for lam in lambdas:
-        alpha = evecs @ (proj / (evals + lam)[:, None])
-        w = (a.T @ alpha) / sd[:, None]                    # (D, targets)
-        out.append((w.T, y_mu - mu @ w))
+        coef = evecs @ (proj / (evals + lam)[:, None])
+        w = ((a.T @ coef) if dual else coef) / sd[:, None]       # (D, targets)
+        out.append((np.ascontiguousarray(w.T), y_mu - mu @ w))
     return out
 
 
@@ -150,64 +181,99 @@ def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, epis
                      command: str) -> dict:
     """Fit, score on held-out episodes and write the read-out file; returns its record.
     Episodes alternate over ``env_ids``; training seeds ``seed + i``, held-out seeds
-    ``seed + 100,000 + i``; each target's ridge penalty is chosen on the last eighth of the
-    training episodes."""
+    ``seed + 100,000 + i``. The fine estimate is fitted on the steps within ``near_mm +``
+    :data:`FIT_MARGIN_MM` of the seat, each target's ridge penalty chosen on the last eighth
+    of the training episodes; the coarse one on every step's proprioception; the read-out
+    switches to the fine estimate where the coarse one is within ``near_mm +``
+    :data:`SWITCH_MARGIN_MM` (the coarse estimate is off by about 3 mm, so a step within
+    ``near_mm`` is read finely and a step read finely lies inside the fitted range). The
+    held-out quality is the switched estimate's, as the policy sees it, on the steps within
+    ``near_mm``."""
     from safetensors.torch import save_file
 
     t0 = time.perf_counter()
     near = near_mm / 1000.0
+    fit_m, switch_m = (near_mm + FIT_MARGIN_MM) / 1000.0, (near_mm + SWITCH_MARGIN_MM) / 1000.0
 
     def collect(first: int, n: int) -> list:
         eps = []
         for i, env_id in enumerate(env_ids):
             seeds = [first + k for k in range(n) if k % len(env_ids) == i]
-            eps += [(env_id, x, y) for x, y in offset_frames(env_id, backbone, seeds, align_error_mm,
-                                                             align_error_deg, near, cameras)]
+            eps += [(env_id, *e) for e in offset_frames(env_id, backbone, seeds, align_error_mm,
+                                                        align_error_deg, fit_m, cameras)]
         return eps
 
     train = collect(seed, episodes)
     held = collect(seed + 100_000, heldout_episodes)
     collect_s = time.perf_counter() - t0
+
+    def stack(eps, i: int) -> np.ndarray:
+        return np.concatenate([e[i] for e in eps])
+
     n_val = max(1, len(train) // 8)
-    fit_part, val_part = train[:-n_val], train[-n_val:]
-    stack = lambda eps: (np.concatenate([x for _, x, _ in eps]),  # noqa: E731
-                         np.concatenate([y for _, _, y in eps]))
-    x_fit, y_fit = stack(fit_part)
-    x_val, y_val = stack(val_part)
-    y_sd = y_fit.std(0) + 1e-9
-    val_err = np.stack([rmse(w, b, x_val, y_val) / y_sd
+    x_fit, y_fit = stack(train[:-n_val], 1), stack(train[:-n_val], 2)
+    x_val, y_val = stack(train[-n_val:], 1), stack(train[-n_val:], 2)
+    val_err = np.stack([rmse(w, b, x_val, y_val) / (y_fit.std(0) + 1e-9)
                         for w, b in ridge(x_fit, y_fit, LAMBDAS)])     # (lambdas, targets)
     lam = [LAMBDAS[i] for i in val_err.argmin(0)]                       # one per target
-    x_tr, y_tr = stack(train)
-    fits = dict(zip(LAMBDAS, ridge(x_tr, y_tr, LAMBDAS)))
+    fits = dict(zip(LAMBDAS, ridge(stack(train, 1), stack(train, 2), LAMBDAS)))
     weight = np.stack([fits[v][0][j] for j, v in enumerate(lam)])
     bias = np.array([fits[v][1][j] for j, v in enumerate(lam)])
+    [(coarse_w, coarse_b)] = ridge(stack(train, 3), stack(train, 4), [1e-3])
+    f32 = lambda a: torch.from_numpy(np.ascontiguousarray(a, np.float32))  # noqa: E731
+    tensors = {"weight": f32(weight), "bias": f32(bias), "coarse_weight": f32(coarse_w),
+               "coarse_bias": f32(coarse_b)}
+    readout = PoseReadout(*tensors.values(), switch_m, mm, deg)
+    record = {"format": FORMAT, "targets": list(TARGETS), "cameras": cameras,
+              "backbone_sha256": backbone_sha256, "fine_pose_mm": mm, "fine_pose_deg": deg,
+              "near_mm": near_mm, "fit_mm": near_mm + FIT_MARGIN_MM,
+              "switch_mm": near_mm + SWITCH_MARGIN_MM, "env_ids": list(env_ids),
+              "episodes": episodes, "heldout_episodes": heldout_episodes,
+              "align_error_mm": align_error_mm, "align_error_deg": align_error_deg,
+              "seed": seed, "train_frames": int(len(stack(train, 1))), "ridge_lambda": lam,
+              "heldout_quality": heldout_quality(readout, held, env_ids, near),
+              "command": command, "collect_seconds": round(collect_s, 1),
+              "fit_seconds": round(time.perf_counter() - t0 - collect_s, 1)}
+    return write_readout(out, tensors, record)
+
+
+def heldout_quality(readout: PoseReadout, held: list, env_ids, near: float) -> dict:
+    """Per env: the read-out's RMSE (as the policy sees it) on the held-out steps within
+    ``near`` m of the seat, the targets' spread there, and the coarse estimate's RMSE over
+    every step. ``held``: :func:`offset_frames` episodes, each led by its env id."""
+    def stack(eps, i: int) -> np.ndarray:
+        return np.concatenate([e[i] for e in eps])
+
     quality = {}
     for env_id in env_ids:
         eps = [e for e in held if e[0] == env_id]
         if not eps:
             continue
-        x_te, y_te = stack(eps)
-        err = rmse(weight, bias, x_te, y_te)
+        y_te = stack(eps, 2)
+        inside = np.linalg.norm(y_te[:, :3], axis=1) < near
+        x_te, y_te = stack(eps, 1)[inside], y_te[inside]
+        err = np.sqrt(((readout.estimate(torch.from_numpy(x_te)).double().numpy() - y_te) ** 2)
+                      .mean(0))
+        coarse = rmse(readout.coarse_weight.double().numpy(), readout.coarse_bias.double().numpy(),
+                      stack(eps, 3), stack(eps, 4))
         quality[env_id] = {"frames": int(len(x_te)), "episodes": len(eps),
                            "rmse_pos_mm": (err[:3] * 1000).round(3).tolist(),
                            "rmse_rot_deg": np.rad2deg(err[3:]).round(3).tolist(),
                            "std_pos_mm": (y_te[:, :3].std(0) * 1000).round(3).tolist(),
-                           "std_rot_deg": np.rad2deg(y_te[:, 3:].std(0)).round(3).tolist()}
-    record = {"format": FORMAT, "targets": list(TARGETS), "cameras": cameras,
-              "backbone_sha256": backbone_sha256, "fine_pose_mm": mm, "fine_pose_deg": deg,
-              "env_ids": list(env_ids), "episodes": episodes, "heldout_episodes": heldout_episodes,
-              "align_error_mm": align_error_mm, "align_error_deg": align_error_deg,
-              "near_mm": near_mm, "seed": seed, "train_frames": int(len(x_tr)),
-              "ridge_lambda": lam, "heldout_quality": quality, "command": command,
-              "collect_seconds": round(collect_s, 1),
-              "fit_seconds": round(time.perf_counter() - t0 - collect_s, 1)}
+                           "std_rot_deg": np.rad2deg(y_te[:, 3:].std(0)).round(3).tolist(),
+                           "coarse_rmse_pos_mm_all_steps": (coarse[:3] * 1000).round(1).tolist()}
+    return quality
+
+
+def write_readout(out: Path, tensors: dict, record: dict) -> dict:
+    """Write a read-out file (atomically, mode 644); returns its record with its size."""
+    from safetensors.torch import save_file
+
     out = Path(out)
     tmp = out.with_name(out.name + ".tmp")
-    save_file({"weight": torch.from_numpy(np.ascontiguousarray(weight, np.float32)),
-               "bias": torch.from_numpy(np.ascontiguousarray(bias, np.float32))}, str(tmp),
-              metadata={"window_bench.record": json.dumps(record)})
+    save_file(tensors, str(tmp), metadata={"window_bench.record": json.dumps(record)})
     tmp.replace(out)
+    out.chmod(0o644)
     record["bytes"] = out.stat().st_size
     return record
 
@@ -234,9 +300,10 @@ def load_pose_readout(path: str | Path, backbone_sha256: str | None = None,
                                f"file ({str(e).splitlines()[0][:120]})") from None
     if not isinstance(record, dict) or record.get("format") != FORMAT:
         raise PoseReadoutError(f"pose read-out {str(path)!r} has no {FORMAT!r} record")
-    if set(tensors) != {"weight", "bias"}:
+    names = ("weight", "bias", "coarse_weight", "coarse_bias")
+    if set(tensors) != set(names):
         raise PoseReadoutError(f"pose read-out {str(path)!r} holds tensors {sorted(tensors)}; "
-                               f"expected bias, weight")
+                               f"expected {', '.join(sorted(names))}")
     if not all(bool(torch.isfinite(t).all()) for t in tensors.values()):
         raise PoseReadoutError(f"pose read-out {str(path)!r} holds non-finite values")
     if backbone_sha256 is not None and record.get("backbone_sha256") != backbone_sha256:
@@ -246,8 +313,9 @@ def load_pose_readout(path: str | Path, backbone_sha256: str | None = None,
     if cameras is not None and record.get("cameras") != cameras:
         raise PoseReadoutError(f"pose read-out {str(path)!r} was fitted for the camera set "
                                f"{record.get('cameras')!r}, not {cameras!r}")
-    mm, deg = record.get("fine_pose_mm"), record.get("fine_pose_deg")
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (mm, deg)):
+    mm, deg, switch = (record.get(k) for k in ("fine_pose_mm", "fine_pose_deg", "switch_mm"))
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (mm, deg, switch)):
         raise PoseReadoutError(f"pose read-out {str(path)!r}: fine pose scales {mm!r} / "
-                               f"{deg!r} are not numbers")
-    return PoseReadout(tensors["weight"], tensors["bias"], float(mm), float(deg)), record
+                               f"{deg!r} / switch {switch!r} are not numbers")
+    return PoseReadout(*(tensors[k] for k in names), switch / 1000.0, float(mm),
+                       float(deg)), record
