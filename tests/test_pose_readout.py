@@ -163,3 +163,23 @@ def test_pixel_agents_carry_the_readout_in_their_policy_files():
     tokens = act.tokens(emb)[0].tolist()
     assert tokens[:PROPRIO_DIM] == list(range(64, 82)) and tokens[PROPRIO_DIM:] == \
         list(range(64)) + list(range(82, 94))
+
+
+def test_cli_readout_rejects_bad_arguments_before_work(tmp_path, capsys):
+    """``bench encoder readout``: a bad value is one line and exit code 2, and nothing is
+    written; an existing --out is kept without --force."""
+    from window_bench.cli import main
+
+    out = tmp_path / "r.safetensors"
+    for argv in (["--episodes", "0"], ["--align-error-mm", "60"], ["--near-mm", "-1"],
+                 ["--cameras", "nope"], ["--fine-pose-deg", "91"]):
+        with pytest.raises(SystemExit) as exc:
+            main(["encoder", "readout", "--out", str(out), *argv])
+        assert exc.value.code == 2
+    assert main(["encoder", "readout", "--out", str(out), "--weights",
+                 str(tmp_path / "missing.safetensors")]) == 2
+    err = capsys.readouterr().err
+    assert "no such file" in err and not out.exists()
+    out.write_bytes(b"keep")
+    assert main(["encoder", "readout", "--out", str(out)]) == 2
+    assert out.read_bytes() == b"keep" and "--force" in capsys.readouterr().err
