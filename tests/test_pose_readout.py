@@ -183,3 +183,25 @@ def test_cli_readout_rejects_bad_arguments_before_work(tmp_path, capsys):
     out.write_bytes(b"keep")
     assert main(["encoder", "readout", "--out", str(out)]) == 2
     assert out.read_bytes() == b"keep" and "--force" in capsys.readouterr().err
+
+
+def test_a_small_fit_writes_a_file_the_track_loads(tmp_path):
+    """``fit_pose_readout`` end to end on two scripted episodes (a random backbone: this is
+    plumbing, not quality): the file loads for its backbone digest and camera set, records
+    its command, switch and held-out quality, and reads the features it was fitted on."""
+    from window_bench.pixels.encoder import ResNet10, frozen
+    from window_bench.pixels.pose_readout import fit_pose_readout
+
+    with torch.random.fork_rng():
+        torch.manual_seed(0)
+        backbone = frozen(ResNet10())
+    out = tmp_path / "r.safetensors"
+    record = fit_pose_readout(out, backbone, "cd" * 32, env_ids=["WindowInstall-A-v0"],
+                              episodes=2, heldout_episodes=1, align_error_mm=10.0,
+                              align_error_deg=1.0, near_mm=100.0, cameras="seat", mm=10.0,
+                              deg=2.0, seed=300_000, command="bench encoder readout (test)")
+    readout, saved = load_pose_readout(out, "cd" * 32, "seat")
+    assert saved["switch_mm"] == 115.0 and saved["fit_mm"] == 125.0 and record["train_frames"] > 10
+    q = saved["heldout_quality"]["WindowInstall-A-v0"]
+    assert q["frames"] > 0 and all(np.isfinite(q["rmse_pos_mm"]))
+    assert readout(torch.zeros(2, OBS_DIM)).shape == (2, FEATURES)
