@@ -205,3 +205,29 @@ def test_a_small_fit_writes_a_file_the_track_loads(tmp_path):
     q = saved["heldout_quality"]["WindowInstall-A-v0"]
     assert q["frames"] > 0 and all(np.isfinite(q["rmse_pos_mm"]))
     assert readout(torch.zeros(2, OBS_DIM)).shape == (2, FEATURES)
+
+
+def test_operator_episodes_join_the_fit_and_are_scored(tmp_path):
+    """``operator_episodes``: episodes of the operator demonstrating (its own eye error and
+    hand noise, as the demonstrations are made) join the training frames, and the read-out is
+    scored on held-out ones as well; the record names the operator."""
+    from window_bench.pixels.encoder import ResNet10, frozen
+    from window_bench.pixels.pose_readout import fit_pose_readout, installer_episodes
+
+    with torch.random.fork_rng():
+        torch.manual_seed(0)
+        backbone = frozen(ResNet10())
+    common = dict(env_ids=["WindowInstall-A-v0"], episodes=2, heldout_episodes=1,
+                  align_error_mm=10.0, align_error_deg=1.0, near_mm=100.0, cameras="seat",
+                  mm=10.0, deg=2.0, seed=300_000, command="bench encoder readout (test)")
+    alone = fit_pose_readout(tmp_path / "a.safetensors", backbone, "cd" * 32, **common)
+    both = fit_pose_readout(tmp_path / "b.safetensors", backbone, "cd" * 32, **common,
+                            operator_episodes=1, operator="average")
+    assert alone["operator"] is None and alone["heldout_quality_operator"] is None
+    assert both["operator"] == "average" and both["train_frames"] > alone["train_frames"]
+    q = both["heldout_quality_operator"]["WindowInstall-A-v0"]
+    assert q["frames"] > 0 and all(np.isfinite(q["rmse_pos_mm"]))
+    # The operator's episode is not the scripted installer's: its hands shake.
+    [scripted] = installer_episodes("WindowInstall-A-v0", [5], 0.0, 0.0, 0.0, "seat")
+    [shown] = installer_episodes("WindowInstall-A-v0", [5], 0.0, 0.0, 0.0, "seat", "average")
+    assert len(scripted) != len(shown) or not np.allclose(scripted[-1][1], shown[-1][1])

@@ -140,32 +140,17 @@ def offset_frames(env_id: str, seeds, align_error_mm: float, near_m: float,
     """The episodes of :func:`offset_episodes` on a state env, rendering ``cameras`` only
     on the steps within ``near_m`` of the seat: per episode the two views (uint8), the 18
     proprioceptive values and ``window_pos_rel``."""
-    import gymnasium as gym
-
-    from window_bench.installer.scripted import ScriptedInstaller
-    from window_bench.pixels.cameras import render_views
-    from window_bench.pixels.track import privileged_state
+    from window_bench.pixels.pose_readout import installer_episodes
 
     pos = flat_slice("window_pos_rel")
-    env = gym.make(env_id, obs_mode="state")
     out = []
-    for seed in seeds:
-        obs, _ = env.reset(seed=int(seed))
-        inst = ScriptedInstaller(env, align_error_mm=align_error_mm,
-                                 align_error_deg=align_error_deg, seed=int(seed))
-        v0, v1, props, ys = [], [], [], []
-        done = False
-        while not done:
-            y = privileged_state(env)[pos]
-            if np.linalg.norm(y) < near_m:
-                a, b = render_views(env, cameras)
-                v0.append(a), v1.append(b), ys.append(y.astype(np.float32))
-                props.append(np.asarray(obs["robot0_proprio"], np.float32))
-            obs, _, term, trunc, _ = env.step(inst.act())
-            done = term or trunc
-        if ys:
-            out.append((np.stack(v0), np.stack(v1), np.stack(props), np.stack(ys)))
-    env.close()
+    for steps in installer_episodes(env_id, seeds, align_error_mm, align_error_deg, near_m,
+                                    cameras):
+        near = [(obs, flat, views) for obs, flat, views in steps if views is not None]
+        if near:
+            out.append((np.stack([v[0] for _, _, v in near]), np.stack([v[1] for _, _, v in near]),
+                        np.stack([np.asarray(o["robot0_proprio"], np.float32) for o, _, _ in near]),
+                        np.stack([f[pos] for _, f, _ in near]).astype(np.float32)))
     return out
 
 

@@ -108,19 +108,25 @@ def cmd_encoder_readout(args) -> int:
                f"--heldout-episodes {args.heldout_episodes} --align-error-mm "
                f"{args.align_error_mm:g} --align-error-deg {args.align_error_deg:g} --near-mm "
                f"{args.near_mm:g} --cameras {args.cameras} --fine-pose-mm {args.fine_pose_mm:g} "
-               f"--fine-pose-deg {args.fine_pose_deg:g} --seed {args.seed}")
+               f"--fine-pose-deg {args.fine_pose_deg:g} --seed {args.seed}"
+               + (f" --operator-episodes {args.operator_episodes} --operator {args.operator}"
+                  if args.operator_episodes else ""))
     record = fit_pose_readout(
         args.out, backbone, sha256_file(args.weights or DEFAULT_WEIGHTS), env_ids=args.env,
         episodes=args.episodes, heldout_episodes=args.heldout_episodes,
         align_error_mm=args.align_error_mm, align_error_deg=args.align_error_deg,
         near_mm=args.near_mm, cameras=args.cameras, mm=args.fine_pose_mm,
-        deg=args.fine_pose_deg, seed=args.seed, command=command)
+        deg=args.fine_pose_deg, seed=args.seed, command=command,
+        operator_episodes=args.operator_episodes, operator=args.operator)
     print(f"wrote {args.out} ({record['bytes'] / 1e6:.2f} MB): {record['train_frames']} "
           f"training frames, ridge penalties {record['ridge_lambda']}")
     for env_id, q in record["heldout_quality"].items():
         print(f"{env_id}: held-out RMSE position (mm) {q['rmse_pos_mm']} (spread "
               f"{q['std_pos_mm']}), rotation (deg) {q['rmse_rot_deg']} (spread "
               f"{q['std_rot_deg']}), {q['frames']} frames of {q['episodes']} episodes")
+    for env_id, q in (record["heldout_quality_operator"] or {}).items():
+        print(f"{env_id}, {args.operator} demonstrating: held-out RMSE position (mm) "
+              f"{q['rmse_pos_mm']} (spread {q['std_pos_mm']}), {q['frames']} frames")
     return 0
 
 
@@ -150,6 +156,7 @@ def add_encoder_parser(sub) -> None:
                                      "print its training record")
     i.add_argument("path")
     i.set_defaults(func=cmd_encoder_info)
+    from window_bench.installer.operators import OPERATORS
     from window_bench.pixels.cameras import CAMERA_SETS
 
     r = esub.add_parser("readout", help="fit the fixed pose read-out of the frozen features "
@@ -167,6 +174,10 @@ def add_encoder_parser(sub) -> None:
     r.add_argument("--fine-pose-mm", type=_number_in(1000.0), default=10.0)
     r.add_argument("--fine-pose-deg", type=_number_in(90.0), default=2.0)
     r.add_argument("--weights", default=None, help="backbone weights (default: the shipped one)")
+    r.add_argument("--operator-episodes", type=arg.int_in(0, 10_000), default=0,
+                   help="more training episodes of an operator demonstrating (the states "
+                        "its demonstrations visit); also scores the read-out on held-out ones")
+    r.add_argument("--operator", choices=sorted(OPERATORS), default="average")
     r.add_argument("--seed", type=arg.seed, default=300_000,
                    help="first training seed (held out: +100,000)")
     r.set_defaults(func=cmd_encoder_readout)

@@ -110,64 +110,94 @@ class PoseReadout(nn.Module):
 
 
 # ---------------------------------------------------------------------------- fitting
-def offset_frames(env_id: str, backbone, seeds, align_error_mm: float, align_error_deg: float,
-                  near_m: float, cameras: str) -> list[tuple[np.ndarray, ...]]:
-    """Per scripted episode: the pixel observations (exactly as :class:`PixelFeatures` makes
-    them) and the 6 target values of every step with the panel within ``near_m`` of the
-    seat (only those steps are rendered), then the proprioception and the targets of every
-    step. The installer's seat estimate is off by a uniform draw of up to ``align_error_mm``
-    per lateral axis and ``align_error_deg`` per axis."""
+def installer_episodes(env_id: str, seeds, align_error_mm: float, align_error_deg: float,
+                       near_m: float, cameras: str, operator: str | None = None):
+    """Per episode (one per seed), every step's ``(obs, flat state, views)``: the state
+    observation, the privileged flat state and the two rendered ``cameras`` views (uint8),
+    rendered only where the panel is within ``near_m`` of the seat (else ``None``).
+    ``operator=None``: the scripted installer, its seat estimate off by a uniform draw of up to
+    ``align_error_mm`` per lateral axis and ``align_error_deg`` per axis; an operator's name:
+    that operator demonstrating (its own eye error, hand noise and hesitations), as the
+    demonstrations are made - the states a policy imitating them visits."""
     import gymnasium as gym
 
+    from window_bench.installer.operators import HumanlikeInstaller
     from window_bench.installer.scripted import ScriptedInstaller
-    from window_bench.installer.supervisor import FLAT_SLICES
     from window_bench.pixels.cameras import render_views
-    from window_bench.pixels.encoder import VIEWS
-    from window_bench.pixels.features import encode_views
     from window_bench.pixels.track import privileged_state
 
+    pos = slice(*_pos_span())
     env = gym.make(env_id, obs_mode="state")
+    try:
+        for seed in seeds:
+            obs, _ = env.reset(seed=int(seed))
+            inst = (ScriptedInstaller(env, align_error_mm=align_error_mm,
+                                      align_error_deg=align_error_deg, seed=int(seed))
+                    if operator is None else HumanlikeInstaller(env, operator, seed=int(seed)))
+            steps, done = [], False
+            while not done:
+                flat = privileged_state(env)
+                near = np.linalg.norm(flat[pos]) < near_m
+                steps.append((obs, flat, render_views(env, cameras) if near else None))
+                obs, _, term, trunc, _ = env.step(inst.act(obs))
+                done = term or trunc
+            yield steps
+    finally:
+        env.close()
+
+
+def _pos_span() -> tuple[int, int]:
+    from window_bench.installer.supervisor import FLAT_SLICES
+
+    s = FLAT_SLICES["window_pos_rel"]
+    return s.start, s.stop
+
+
+def offset_frames(env_id: str, backbone, seeds, align_error_mm: float, align_error_deg: float,
+                  near_m: float, cameras: str, operator: str | None = None
+                  ) -> list[tuple[np.ndarray, ...]]:
+    """Per :func:`installer_episodes` episode: the pixel observations (exactly as
+    :class:`PixelFeatures` makes them) and the 6 target values of every step with the panel
+    within ``near_m`` of the seat, then the proprioception and the targets of every step."""
+    from window_bench.installer.supervisor import FLAT_SLICES
+    from window_bench.pixels.encoder import VIEWS
+    from window_bench.pixels.features import encode_views
+
     out = []
-    for seed in seeds:
-        obs, _ = env.reset(seed=int(seed))
-        inst = ScriptedInstaller(env, align_error_mm=align_error_mm,
-                                 align_error_deg=align_error_deg, seed=int(seed))
+    for steps in installer_episodes(env_id, seeds, align_error_mm, align_error_deg, near_m,
+                                    cameras, operator):
         xs, ys, props, targets = [], [], [], []
-        done = False
-        while not done:
-            flat = privileged_state(env)
+        for obs, flat, views in steps:
             y = np.concatenate([flat[FLAT_SLICES[k]] for k in TARGETS])
             props.append(np.asarray(obs["robot0_proprio"], np.float32)), targets.append(y)
-            if np.linalg.norm(y[:3]) < near_m:
-                views = dict(zip(VIEWS, render_views(env, cameras)))
-                xs.append(encode_views(backbone, {**views, "robot0_proprio": obs["robot0_proprio"]}))
+            if views is not None:
+                xs.append(encode_views(backbone, {**dict(zip(VIEWS, views)),
+                                                  "robot0_proprio": obs["robot0_proprio"]}))
                 ys.append(y)
-            obs, _, term, trunc, _ = env.step(inst.act())
-            done = term or trunc
         if xs:
             out.append((np.stack(xs).astype(np.float32), np.stack(ys).astype(np.float64),
                         np.stack(props), np.stack(targets).astype(np.float64)))
-    env.close()
     return out
 
 
 def ridge(x_tr: np.ndarray, y_tr: np.ndarray, lambdas) -> list[tuple[np.ndarray, np.ndarray]]:
     """Ridge regressions on standardised inputs, one per penalty in ``lambdas``, returned on
     the raw inputs as ``(weight (targets, D), bias (targets,))`` each. Solved in the dual
-    form when there are fewer rows than inputs (one eigendecomposition of the kernel serves
-    every penalty), else in the primal."""
+    form when there are fewer rows than inputs, else in the primal: one Cholesky solve per
+    penalty (a third of n^3 operations each)."""
     x = x_tr.astype(np.float64)
     mu, sd = x.mean(0), x.std(0) + 1e-6
-    a = (x - mu) / sd
-    y_mu = y_tr.mean(0)
+    a = torch.from_numpy((x - mu) / sd)
+    y = torch.from_numpy(y_tr - y_tr.mean(0))
     dual = len(a) < a.shape[1]
-    evals, evecs = np.linalg.eigh(a @ a.T if dual else a.T @ a)
-    proj = evecs.T @ ((y_tr - y_mu) if dual else a.T @ (y_tr - y_mu))
+    gram = a @ a.T if dual else a.T @ a
+    rhs = y if dual else a.T @ y
+    eye = torch.eye(len(gram), dtype=torch.float64)
     out = []
     for lam in lambdas:
-        coef = evecs @ (proj / (evals + lam)[:, None])
-        w = ((a.T @ coef) if dual else coef) / sd[:, None]       # (D, targets)
-        out.append((np.ascontiguousarray(w.T), y_mu - mu @ w))
+        coef = torch.cholesky_solve(rhs, torch.linalg.cholesky(gram + lam * eye))
+        w = ((a.T @ coef) if dual else coef).numpy() / sd[:, None]      # (D, targets)
+        out.append((np.ascontiguousarray(w.T), y_tr.mean(0) - mu @ w))
     return out
 
 
@@ -178,7 +208,8 @@ def rmse(weight: np.ndarray, bias: np.ndarray, x: np.ndarray, y: np.ndarray) -> 
 def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, episodes: int,
                      heldout_episodes: int, align_error_mm: float, align_error_deg: float,
                      near_mm: float, cameras: str, mm: float, deg: float, seed: int,
-                     command: str) -> dict:
+                     command: str, operator_episodes: int = 0,
+                     operator: str = "average") -> dict:
     """Fit, score on held-out episodes and write the read-out file; returns its record.
     Episodes alternate over ``env_ids``; training seeds ``seed + i``, held-out seeds
     ``seed + 100,000 + i``. The fine estimate is fitted on the steps within ``near_mm +``
@@ -188,31 +219,41 @@ def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, epis
     :data:`SWITCH_MARGIN_MM` (the coarse estimate is off by about 3 mm, so a step within
     ``near_mm`` is read finely and a step read finely lies inside the fitted range). The
     held-out quality is the switched estimate's, as the policy sees it, on the steps within
-    ``near_mm``."""
+    ``near_mm``. ``operator_episodes`` more training episodes (seeds ``seed + 50,000 + i``)
+    are ``operator`` demonstrating, the states a policy imitating its demonstrations visits;
+    then the quality is scored on as many held-out operator episodes as scripted ones too
+    (seeds ``seed + 150,000 + i``)."""
     from safetensors.torch import save_file
 
     t0 = time.perf_counter()
     near = near_mm / 1000.0
     fit_m, switch_m = (near_mm + FIT_MARGIN_MM) / 1000.0, (near_mm + SWITCH_MARGIN_MM) / 1000.0
 
-    def collect(first: int, n: int) -> list:
+    def collect(first: int, n: int, by: str | None = None) -> list:
         eps = []
         for i, env_id in enumerate(env_ids):
             seeds = [first + k for k in range(n) if k % len(env_ids) == i]
             eps += [(env_id, *e) for e in offset_frames(env_id, backbone, seeds, align_error_mm,
-                                                        align_error_deg, fit_m, cameras)]
+                                                        align_error_deg, fit_m, cameras, by)]
         return eps
 
-    train = collect(seed, episodes)
+    scripted = collect(seed, episodes)
     held = collect(seed + 100_000, heldout_episodes)
+    shown = collect(seed + 50_000, operator_episodes, operator) if operator_episodes else []
+    held_shown = collect(seed + 150_000, heldout_episodes, operator) if operator_episodes else []
     collect_s = time.perf_counter() - t0
 
     def stack(eps, i: int) -> np.ndarray:
         return np.concatenate([e[i] for e in eps])
 
-    n_val = max(1, len(train) // 8)
-    x_fit, y_fit = stack(train[:-n_val], 1), stack(train[:-n_val], 2)
-    x_val, y_val = stack(train[-n_val:], 1), stack(train[-n_val:], 2)
+    # Each source's last eighth of episodes chooses the penalties.
+    fit_eps, val_eps = [], []
+    for eps in (scripted, shown):
+        n_val = max(1, len(eps) // 8) if len(eps) > 1 else 0
+        fit_eps, val_eps = fit_eps + eps[:len(eps) - n_val], val_eps + eps[len(eps) - n_val:]
+    train = scripted + shown
+    x_fit, y_fit = stack(fit_eps, 1), stack(fit_eps, 2)
+    x_val, y_val = stack(val_eps, 1), stack(val_eps, 2)
     val_err = np.stack([rmse(w, b, x_val, y_val) / (y_fit.std(0) + 1e-9)
                         for w, b in ridge(x_fit, y_fit, LAMBDAS)])     # (lambdas, targets)
     lam = [LAMBDAS[i] for i in val_err.argmin(0)]                       # one per target
@@ -231,7 +272,11 @@ def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, epis
               "episodes": episodes, "heldout_episodes": heldout_episodes,
               "align_error_mm": align_error_mm, "align_error_deg": align_error_deg,
               "seed": seed, "train_frames": int(len(stack(train, 1))), "ridge_lambda": lam,
+              "operator": operator if operator_episodes else None,
+              "operator_episodes": operator_episodes,
               "heldout_quality": heldout_quality(readout, held, env_ids, near),
+              "heldout_quality_operator": (heldout_quality(readout, held_shown, env_ids, near)
+                                           if operator_episodes else None),
               "command": command, "collect_seconds": round(collect_s, 1),
               "fit_seconds": round(time.perf_counter() - t0 - collect_s, 1)}
     return write_readout(out, tensors, record)
