@@ -109,8 +109,8 @@ def cmd_encoder_readout(args) -> int:
                f"{args.align_error_mm:g} --align-error-deg {args.align_error_deg:g} --near-mm "
                f"{args.near_mm:g} --cameras {args.cameras} --fine-pose-mm {args.fine_pose_mm:g} "
                f"--fine-pose-deg {args.fine_pose_deg:g} --seed {args.seed}"
-               + (f" --operator-episodes {args.operator_episodes} --operator {args.operator}"
-                  if args.operator_episodes else ""))
+               + f" --operator-episodes {args.operator_episodes}"
+               + (f" --operator {args.operator}" if args.operator_episodes else ""))
     record = fit_pose_readout(
         args.out, backbone, sha256_file(args.weights or DEFAULT_WEIGHTS), env_ids=args.env,
         episodes=args.episodes, heldout_episodes=args.heldout_episodes,
@@ -163,7 +163,8 @@ def add_encoder_parser(sub) -> None:
                                         "(the pixels-seat track's; docs/pixels.md)")
     arg.add_out_file(r, "read-out file to write (.safetensors)", required=True)
     r.add_argument("--env", nargs="+", choices=ENV_IDS, default=["WindowInstall-A-v0"])
-    r.add_argument("--episodes", type=arg.positive, default=192, help="training episodes")
+    r.add_argument("--episodes", type=arg.positive, default=96,
+                   help="scripted training episodes (seat estimate off by --align-error-*)")
     r.add_argument("--heldout-episodes", type=arg.positive, default=24)
     r.add_argument("--align-error-mm", type=_number_in(50.0), default=25.0,
                    help="the scripted installer's seat estimate is off by up to this (mm)")
@@ -174,7 +175,7 @@ def add_encoder_parser(sub) -> None:
     r.add_argument("--fine-pose-mm", type=_number_in(1000.0), default=10.0)
     r.add_argument("--fine-pose-deg", type=_number_in(90.0), default=2.0)
     r.add_argument("--weights", default=None, help="backbone weights (default: the shipped one)")
-    r.add_argument("--operator-episodes", type=arg.int_in(0, 10_000), default=0,
+    r.add_argument("--operator-episodes", type=arg.int_in(0, 10_000), default=64,
                    help="more training episodes of an operator demonstrating (the states "
                         "its demonstrations visit); also scores the read-out on held-out ones")
     r.add_argument("--operator", choices=sorted(OPERATORS), default="average")
