@@ -231,3 +231,17 @@ def test_operator_episodes_join_the_fit_and_are_scored(tmp_path):
     [scripted] = installer_episodes("WindowInstall-A-v0", [5], 0.0, 0.0, 0.0, "seat")
     [shown] = installer_episodes("WindowInstall-A-v0", [5], 0.0, 0.0, 0.0, "seat", "average")
     assert len(scripted) != len(shown) or not np.allclose(scripted[-1][1], shown[-1][1])
+
+
+def test_policy_episodes_need_a_policy_file(tmp_path, capsys):
+    """``--policy`` and ``--policy-episodes`` go together, and a policy file that is not
+    there is refused in one line before anything is written."""
+    from window_bench.cli import main
+
+    out = tmp_path / "r.safetensors"
+    assert main(["encoder", "readout", "--out", str(out), "--policy-episodes", "3"]) == 2
+    assert "go together" in capsys.readouterr().err
+    assert main(["encoder", "readout", "--out", str(out), "--policy",
+                 str(tmp_path / "none.safetensors"), "--policy-episodes", "3"]) == 2
+    err = capsys.readouterr().err
+    assert "--policy" in err and len(err.strip().splitlines()) == 1 and not out.exists()

@@ -103,6 +103,23 @@ def cmd_encoder_readout(args) -> int:
     except (WeightsError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if (args.policy is None) != (args.policy_episodes == 0):
+        print("error: --policy FILE and --policy-episodes N (1-10000) go together",
+              file=sys.stderr)
+        return 2
+    if args.policy is not None:
+        from window_bench.harness.evaluation import load_policy_file
+        from window_bench.harness.files import RunFileError
+
+        try:
+            _, _, meta = load_policy_file(args.policy)
+        except (RunFileError, OSError) as e:
+            print(f"error: --policy: {str(e).splitlines()[0]}", file=sys.stderr)
+            return 2
+        if meta["env_id"] != args.env[0] or len(args.env) != 1:
+            print(f"error: --policy {args.policy!r} acts on {meta['env_id']}; give "
+                  f"--env {meta['env_id']} alone", file=sys.stderr)
+            return 2
     torch.set_num_threads(1)
     command = (f"bench encoder readout --env {' '.join(args.env)} --episodes {args.episodes} "
                f"--heldout-episodes {args.heldout_episodes} --align-error-mm "
@@ -110,14 +127,17 @@ def cmd_encoder_readout(args) -> int:
                f"{args.near_mm:g} --cameras {args.cameras} --fine-pose-mm {args.fine_pose_mm:g} "
                f"--fine-pose-deg {args.fine_pose_deg:g} --seed {args.seed}"
                + f" --operator-episodes {args.operator_episodes}"
-               + (f" --operator {args.operator}" if args.operator_episodes else ""))
+               + (f" --operator {args.operator}" if args.operator_episodes else "")
+               + (f" --policy {args.policy} --policy-episodes {args.policy_episodes}"
+                  if args.policy else ""))
     record = fit_pose_readout(
         args.out, backbone, sha256_file(args.weights or DEFAULT_WEIGHTS), env_ids=args.env,
         episodes=args.episodes, heldout_episodes=args.heldout_episodes,
         align_error_mm=args.align_error_mm, align_error_deg=args.align_error_deg,
         near_mm=args.near_mm, cameras=args.cameras, mm=args.fine_pose_mm,
         deg=args.fine_pose_deg, seed=args.seed, command=command,
-        operator_episodes=args.operator_episodes, operator=args.operator)
+        operator_episodes=args.operator_episodes, operator=args.operator,
+        policy=args.policy, policy_episodes=args.policy_episodes)
     print(f"wrote {args.out} ({record['bytes'] / 1e6:.2f} MB): {record['train_frames']} "
           f"training frames, ridge penalties {record['ridge_lambda']}")
     for env_id, q in record["heldout_quality"].items():
@@ -126,6 +146,9 @@ def cmd_encoder_readout(args) -> int:
               f"{q['std_rot_deg']}), {q['frames']} frames of {q['episodes']} episodes")
     for env_id, q in (record["heldout_quality_operator"] or {}).items():
         print(f"{env_id}, {args.operator} demonstrating: held-out RMSE position (mm) "
+              f"{q['rmse_pos_mm']} (spread {q['std_pos_mm']}), {q['frames']} frames")
+    for env_id, q in (record["heldout_quality_policy"] or {}).items():
+        print(f"{env_id}, the policy acting: held-out RMSE position (mm) "
               f"{q['rmse_pos_mm']} (spread {q['std_pos_mm']}), {q['frames']} frames")
     return 0
 
@@ -179,6 +202,10 @@ def add_encoder_parser(sub) -> None:
                    help="more training episodes of an operator demonstrating (the states "
                         "its demonstrations visit); also scores the read-out on held-out ones")
     r.add_argument("--operator", choices=sorted(OPERATORS), default="average")
+    r.add_argument("--policy", default=None,
+                   help="a pixels-seat policy file: its own episodes (deterministic, as "
+                        "evaluated) join the fit, the states it visits")
+    r.add_argument("--policy-episodes", type=arg.int_in(0, 10_000), default=0)
     r.add_argument("--seed", type=arg.seed, default=300_000,
                    help="first training seed (held out: +100,000)")
     r.set_defaults(func=cmd_encoder_readout)

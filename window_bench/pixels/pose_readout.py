@@ -180,6 +180,42 @@ def offset_frames(env_id: str, backbone, seeds, align_error_mm: float, align_err
     return out
 
 
+def policy_frames(policy_file: str | Path, env_id: str, seeds, near_m: float
+                  ) -> list[tuple[np.ndarray, ...]]:
+    """:func:`offset_frames`-shaped episodes of a frozen ``pixels-seat`` policy acting as it
+    is evaluated (deterministic, no takeovers): the states the policy itself visits. Only the
+    steps it observes (its chunk grid) with the panel held and within ``near_m`` of the
+    seat; the proprioception and targets are those same steps."""
+    from window_bench.harness.evaluation import _eval_rollout, load_policy_file
+    from window_bench.installer.supervisor import FLAT_SLICES
+    from window_bench.pixels.track import privileged_state
+
+    agent_cls, state, meta = load_policy_file(policy_file)
+    if meta["env_id"] != env_id:
+        raise PoseReadoutError(f"policy {str(policy_file)!r} was trained on {meta['env_id']}, "
+                               f"not {env_id}")
+    rollout, env = _eval_rollout(agent_cls, state, env_id, 600)
+    out = []
+    try:
+        for seed in seeds:
+            rollout.reset(seed=int(seed), episode_id=int(seed))
+            xs, ys = [], []
+            while not rollout.done:
+                obs = np.asarray(rollout.obs, np.float32)
+                if env.unwrapped.suction_engaged and not np.isnan(obs).all():
+                    flat = privileged_state(env)
+                    y = np.concatenate([flat[FLAT_SLICES[k]] for k in TARGETS])
+                    if np.linalg.norm(y[:3]) < near_m:
+                        xs.append(obs), ys.append(y)
+                rollout.step()
+            if xs:
+                x, y = np.stack(xs), np.stack(ys).astype(np.float64)
+                out.append((x, y, x[:, -PROPRIO_DIM:], y))
+    finally:
+        env.close()
+    return out
+
+
 def ridge(x_tr: np.ndarray, y_tr: np.ndarray, lambdas) -> list[tuple[np.ndarray, np.ndarray]]:
     """Ridge regressions on standardised inputs, one per penalty in ``lambdas``, returned on
     the raw inputs as ``(weight (targets, D), bias (targets,))`` each. Solved in the dual
@@ -201,6 +237,12 @@ def ridge(x_tr: np.ndarray, y_tr: np.ndarray, lambdas) -> list[tuple[np.ndarray,
     return out
 
 
+def _sha256(path) -> str:
+    from window_bench.harness.files import sha256_file
+
+    return sha256_file(path)
+
+
 def rmse(weight: np.ndarray, bias: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.sqrt((((x.astype(np.float64) @ weight.T + bias) - y) ** 2).mean(0))
 
@@ -209,7 +251,8 @@ def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, epis
                      heldout_episodes: int, align_error_mm: float, align_error_deg: float,
                      near_mm: float, cameras: str, mm: float, deg: float, seed: int,
                      command: str, operator_episodes: int = 0,
-                     operator: str = "average") -> dict:
+                     operator: str = "average", policy: str | Path | None = None,
+                     policy_episodes: int = 0) -> dict:
     """Fit, score on held-out episodes and write the read-out file; returns its record.
     Episodes alternate over ``env_ids``; training seeds ``seed + i``, held-out seeds
     ``seed + 100,000 + i``. The fine estimate is fitted on the steps within ``near_mm +``
@@ -222,7 +265,10 @@ def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, epis
     ``near_mm``. ``operator_episodes`` more training episodes (seeds ``seed + 50,000 + i``)
     are ``operator`` demonstrating, the states a policy imitating its demonstrations visits;
     then the quality is scored on as many held-out operator episodes as scripted ones too
-    (seeds ``seed + 150,000 + i``)."""
+    (seeds ``seed + 150,000 + i``). ``policy_episodes`` more (seeds ``seed + 60,000 + i``;
+    held out ``seed + 160,000 + i``) are a ``pixels-seat`` ``policy`` file acting
+    (:func:`policy_frames`): the states that policy visits, which an imitation of the
+    demonstrations strays into (tilted several degrees, in contact)."""
     from safetensors.torch import save_file
 
     t0 = time.perf_counter()
@@ -241,6 +287,13 @@ def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, epis
     held = collect(seed + 100_000, heldout_episodes)
     shown = collect(seed + 50_000, operator_episodes, operator) if operator_episodes else []
     held_shown = collect(seed + 150_000, heldout_episodes, operator) if operator_episodes else []
+
+    def acted(first: int, n: int) -> list:
+        seeds = range(first, first + n)
+        return [(env_ids[0], *e) for e in policy_frames(policy, env_ids[0], seeds, fit_m)]
+
+    by_policy = acted(seed + 60_000, policy_episodes) if policy_episodes else []
+    held_policy = acted(seed + 160_000, heldout_episodes) if policy_episodes else []
     collect_s = time.perf_counter() - t0
 
     def stack(eps, i: int) -> np.ndarray:
@@ -248,10 +301,10 @@ def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, epis
 
     # Each source's last eighth of episodes chooses the penalties.
     fit_eps, val_eps = [], []
-    for eps in (scripted, shown):
+    for eps in (scripted, shown, by_policy):
         n_val = max(1, len(eps) // 8) if len(eps) > 1 else 0
         fit_eps, val_eps = fit_eps + eps[:len(eps) - n_val], val_eps + eps[len(eps) - n_val:]
-    train = scripted + shown
+    train = scripted + shown + by_policy
     x_fit, y_fit = stack(fit_eps, 1), stack(fit_eps, 2)
     x_val, y_val = stack(val_eps, 1), stack(val_eps, 2)
     val_err = np.stack([rmse(w, b, x_val, y_val) / (y_fit.std(0) + 1e-9)
@@ -277,6 +330,10 @@ def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, epis
               "heldout_quality": heldout_quality(readout, held, env_ids, near),
               "heldout_quality_operator": (heldout_quality(readout, held_shown, env_ids, near)
                                            if operator_episodes else None),
+              "policy_sha256": _sha256(policy) if policy_episodes else None,
+              "policy_episodes": policy_episodes,
+              "heldout_quality_policy": (heldout_quality(readout, held_policy, env_ids[:1], near)
+                                         if policy_episodes else None),
               "command": command, "collect_seconds": round(collect_s, 1),
               "fit_seconds": round(time.perf_counter() - t0 - collect_s, 1)}
     return write_readout(out, tensors, record)
