@@ -122,11 +122,12 @@ def installer_episodes(env_id: str, seeds, align_error_mm: float, align_error_de
     import gymnasium as gym
 
     from window_bench.installer.operators import HumanlikeInstaller
+    from window_bench.installer.supervisor import FLAT_SLICES
     from window_bench.installer.scripted import ScriptedInstaller
     from window_bench.pixels.cameras import render_views
     from window_bench.pixels.track import privileged_state
 
-    pos = slice(*_pos_span())
+    pos = FLAT_SLICES["window_pos_rel"]
     env = gym.make(env_id, obs_mode="state")
     try:
         for seed in seeds:
@@ -144,13 +145,6 @@ def installer_episodes(env_id: str, seeds, align_error_mm: float, align_error_de
             yield steps
     finally:
         env.close()
-
-
-def _pos_span() -> tuple[int, int]:
-    from window_bench.installer.supervisor import FLAT_SLICES
-
-    s = FLAT_SLICES["window_pos_rel"]
-    return s.start, s.stop
 
 
 def offset_frames(env_id: str, backbone, seeds, align_error_mm: float, align_error_deg: float,
@@ -237,12 +231,6 @@ def ridge(x_tr: np.ndarray, y_tr: np.ndarray, lambdas) -> list[tuple[np.ndarray,
     return out
 
 
-def _sha256(path) -> str:
-    from window_bench.harness.files import sha256_file
-
-    return sha256_file(path)
-
-
 def rmse(weight: np.ndarray, bias: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.sqrt((((x.astype(np.float64) @ weight.T + bias) - y) ** 2).mean(0))
 
@@ -270,6 +258,8 @@ def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, epis
     (:func:`policy_frames`): the states that policy visits, which an imitation of the
     demonstrations strays into (tilted several degrees, in contact)."""
     from safetensors.torch import save_file
+
+    from window_bench.harness.files import sha256_file
 
     t0 = time.perf_counter()
     near = near_mm / 1000.0
@@ -330,7 +320,7 @@ def fit_pose_readout(out: Path, backbone, backbone_sha256: str, *, env_ids, epis
               "heldout_quality": heldout_quality(readout, held, env_ids, near),
               "heldout_quality_operator": (heldout_quality(readout, held_shown, env_ids, near)
                                            if operator_episodes else None),
-              "policy_sha256": _sha256(policy) if policy_episodes else None,
+              "policy_sha256": sha256_file(policy) if policy_episodes else None,
               "policy_episodes": policy_episodes,
               "heldout_quality_policy": (heldout_quality(readout, held_policy, env_ids[:1], near)
                                          if policy_episodes else None),
