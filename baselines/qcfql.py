@@ -58,7 +58,11 @@ OBS_CLIP = 10.0
 # ---------------------------------------------------------------------------- config
 
 #: Choices of ``QCFQLConfig.prior_data`` (the flow teacher's training chunks).
-PRIOR_DATA = ("replay", "accepted", "accepted_no_takeover", "autonomous", "demo")
+PRIOR_DATA = ("replay", "accepted", "accepted_no_takeover", "autonomous", "demo",
+              "demo_and_takeover")
+
+#: Choices of ``QCFQLConfig.distill_data`` (where, and toward what, the student is distilled).
+DISTILL_DATA = ("batch", "prior", "prior_else_self")
 
 #: ``provenance_code`` of a demonstration and of a takeover step in replay batches.
 DEMO_CODE, TAKEOVER_CODE = PROVENANCE_CODES["demo"], PROVENANCE_CODES["takeover"]
@@ -160,8 +164,10 @@ class QCFQLConfig:
     still learns from them, but the prior imitates only the demonstrations and the policy's
     own steps; ``"autonomous"``, the accepted episodes that had no takeover at all (D_demo
     and the policy's own successes: an episode the installer rescued also holds the policy's
-    steps that needed rescuing); ``"demo"``, the chunks of D_demo only. The critic and the student use every
-    chunk in all four. Not in the paper: on WindowInstall-A, flow BC on all online chunks
+    steps that needed rescuing); ``"demo"``, the chunks of D_demo only;
+    ``"demo_and_takeover"``, D_demo and the installer's takeover steps whatever the episode's
+    outcome (DAgger's data: the corrections at the states the policy reaches). The critic
+    and the student use every chunk in all of them. Not in the paper: on WindowInstall-A, flow BC on all online chunks
     took the averaged student from 80 % to 5 % in 4k updates, and on the takeover steps
     alone to 0 %; complete runs ended at 20 % (``"replay"``), 40-80 % (``"accepted"``) and
     80-85 % (``"accepted_no_takeover"``) (``docs/harness.md``)."""
@@ -170,8 +176,13 @@ class QCFQLConfig:
     """Where the student is distilled toward the teacher (Eq. 9): ``"batch"`` (paper,
     reference), every row of the batch; ``"prior"`` (not in the paper), only the rows the
     flow teacher learns from (``prior_data``): the demonstrations and the accepted online
-    episodes, not the states where the teacher extrapolates. The Q term still acts on every
-    row."""
+    episodes, not the states where the teacher extrapolates; ``"prior_else_self"`` (not in
+    the paper), toward the teacher on those rows and toward the averaged student's own chunk
+    ``mu_ema(s, z)`` on the others (a trust region: there the Q term alone moves the
+    student, against the same ``alpha`` pull). The Q term acts on every row. On
+    WindowInstall-B the teacher seats fewer episodes than its student, and 3,000
+    distillation updates at the student's own states take the student down to the
+    teacher's level (``docs/results/diagnoses/b-online.md``)."""
 
     fine_pose_mm: float = 0.0
     """Fine pose features (not in the paper; state track): ``0`` off; else the networks see,
@@ -283,9 +294,12 @@ class QCFQLConfig:
                                   or not -1.0 <= value <= 1.0):
             raise ValueError(f"QCFQLConfig.takeover_value = {value!r} is not allowed: it must "
                              f"be null or a real number in [-1.0, 1.0]")
-        if self.distill_data not in ("batch", "prior"):
+        if self.distill_data not in DISTILL_DATA:
             raise ValueError(f"QCFQLConfig.distill_data = {self.distill_data!r} is not "
-                             f"allowed: use 'batch' or 'prior'")
+                             f"allowed: use one of {', '.join(map(repr, DISTILL_DATA))}")
+        if self.distill_data == "prior_else_self" and self.prior_data == "replay":
+            raise ValueError("QCFQLConfig.distill_data = 'prior_else_self' needs prior_data "
+                             "other than 'replay' (every row is a prior row there)")
         stride = self.demo_chunk_stride
         if stride is not None and (isinstance(stride, bool) or not isinstance(
                 stride, numbers.Integral) or not 1 <= stride <= self.h):
@@ -606,6 +620,7 @@ class QCFQLAgent(Agent):
         if mode == "replay":
             return None
         needs = {"accepted": ("episode_accepted",), "demo": ("provenance_code",),
+                 "demo_and_takeover": ("provenance_code",),
                  "accepted_no_takeover": ("episode_accepted", "provenance_code"),
                  "autonomous": ("episode_accepted", "episode_supervised")}[mode]
         shapes = {"episode_accepted": (B,), "episode_supervised": (B,), "provenance_code": (B, h)}
@@ -624,6 +639,9 @@ class QCFQLAgent(Agent):
             mask &= values["episode_accepted"].bool().unsqueeze(-1)
         if mode == "demo":
             mask &= (values["provenance_code"] == DEMO_CODE).any(-1, keepdim=True)
+        if mode == "demo_and_takeover":
+            prov = values["provenance_code"]
+            mask &= (prov == DEMO_CODE).any(-1, keepdim=True) | (prov == TAKEOVER_CODE)
         if mode == "accepted_no_takeover":
             mask &= values["provenance_code"] != TAKEOVER_CODE
         if mode == "autonomous":
@@ -694,6 +712,10 @@ class QCFQLAgent(Agent):
         obs = b["obs"]
         z = self.config.distill_noise_scale * self._noise(obs.shape[0]) if z is None else z
         target = self.teacher_actions(obs, z) if target is None else target
+        if self.config.distill_data == "prior_else_self":   # trust region off the prior rows
+            prior_rows = (b["prior_mask"] > 0).any(-1, keepdim=True)
+            with torch.no_grad():
+                target = torch.where(prior_rows, target, self.ema_student(obs, z))
         u = self.student(obs, z)
         sq = (u - target).square()
         per_row = sq.sum(-1) if self.config.distill_reduction == "sum" else sq.mean(-1)

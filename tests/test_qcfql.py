@@ -301,6 +301,9 @@ def test_prior_data_demo_reads_provenance_and_bad_input_is_named():
     no_flag = {k: v for k, v in b.items() if k != "episode_supervised"}
     with pytest.raises(ValueError, match="needs batch\\['episode_supervised'\\]"):
         agent.prepare(no_flag)
+    # DAgger's data: the demonstrations and every takeover step, accepted or not
+    agent = QCFQLAgent(OBS, A, tiny(h=h, prior_data="demo_and_takeover"), seed=0)
+    assert agent.prepare(b)["prior_mask"].tolist() == [[1, 1], [0, 0], [0, 1], [1, 1]]
     agent = QCFQLAgent(OBS, A, tiny(h=h, prior_data="accepted_no_takeover"), seed=0)
     bad = make_batch(B, h)
     del bad["provenance_code"]
@@ -406,6 +409,33 @@ def test_distill_data_prior_distils_only_where_the_teacher_learns():
     assert losses["prior"] == pytest.approx(per_row[[0, 3]].mean().item(), rel=1e-5)
     with pytest.raises(ValueError, match="distill_data = 'online'"):
         QCFQLConfig(distill_data="online")
+
+
+def test_distill_prior_else_self_holds_the_student_where_the_teacher_did_not_learn():
+    h, B = 3, 4
+    batch = make_batch(B, h)
+    batch["provenance_code"] = torch.tensor([[1] * h, [2] * h, [2] * h, [1] * h],
+                                            dtype=torch.uint8)
+    z = torch.zeros(B, h * A)
+    agent = QCFQLAgent(OBS, A, tiny(h=h, prior_data="demo", distill_data="prior_else_self"),
+                       seed=0)
+    b = agent.prepare(batch)
+    target = agent.teacher_actions(b["obs"], z) + 0.2
+    per_row = (agent.student(b["obs"], z) - target).square().sum(-1).detach()
+    # the averaged student starts equal to the student: no pull on the online rows 1, 2
+    got = agent.actor_loss(b, z=z, target=target.detach())["distill"].item()
+    assert got == pytest.approx(per_row[[0, 3]].sum().item() / B, rel=1e-5)
+    with torch.no_grad():   # move the averaged copy: the online rows are pulled toward it
+        for prm in agent.ema_student.parameters():
+            prm.add_(0.05)
+    own = agent.ema_student(b["obs"], z)
+    pull = (agent.student(b["obs"], z) - own).square().sum(-1).detach()
+    got = agent.actor_loss(b, z=z, target=target.detach())["distill"].item()
+    assert pull[[1, 2]].min() > 0
+    assert got == pytest.approx((per_row[[0, 3]].sum() + pull[[1, 2]].sum()).item() / B,
+                                rel=1e-5)
+    with pytest.raises(ValueError, match="needs prior_data other than 'replay'"):
+        QCFQLConfig(prior_data="replay", distill_data="prior_else_self")
 
 
 def test_actor_loss_reaches_the_student_only():
