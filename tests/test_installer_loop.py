@@ -3,6 +3,8 @@ constructed situations, operator profiles, human-like demonstrations and their c
 
 from __future__ import annotations
 
+import dataclasses
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -401,7 +403,11 @@ def test_steady_hands_near_contact_let_a_takeover_seat(steady):
 
 # ---------------------------------------------------------------- profiles, demos
 def test_operator_profiles():
-    assert set(OPERATORS) == {"expert", "average", "novice", "attentive"}
+    assert set(OPERATORS) == {"expert", "average", "novice", "attentive", "by-eye"}
+    by_eye = OPERATORS["by-eye"]
+    assert (by_eye.coarse_align_error_mm, by_eye.coarse_align_error_deg) == (5.0, 2.0)
+    assert dataclasses.replace(by_eye, name="average", coarse_align_error_mm=0.0,
+                               coarse_align_error_deg=0.0) == OPERATORS["average"]
     att = OPERATORS["attentive"]
     assert att.grasp_settle_steps > 0 and att.acquire_patience_steps > 0
     assert att.seat_after_insertion_takeover and not OPERATORS["average"].grasp_settle_steps
