@@ -8,6 +8,12 @@ the proprioception cannot follow a dropped panel). Prints the RMSE (x / depth / 
 distance to the seat, separately for episodes that end seated and those that fail, and
 each failed episode's read-out error over its last 20 held steps.
 
+``--exact-pose`` is a privileged diagnostic: the policy acts on the simulator's true pose in
+place of its read-out (the same 12 features, computed from ``window_pos_rel`` and
+``window_rot_rel``), optionally shifted by a per-episode lateral bias (``--bias-mm B``: x
+and z each drawn uniformly from +-B mm). Does the policy seat when its pose is exact, and
+how much read-out error does it tolerate?
+
     python experiments/sanity/pose_readout_trace.py RUN/policies/step_0000000.safetensors \
         --episodes 20
 """
@@ -26,11 +32,18 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("policy", help="a policies/step_*.safetensors file of a pixels-seat run")
     p.add_argument("--episodes", type=int, default=20, help="dev seeds 100000.. (1-200)")
+    p.add_argument("--exact-pose", action="store_true",
+                   help="act on the true pose instead of the read-out (privileged diagnostic)")
+    p.add_argument("--bias-mm", type=float, default=0.0,
+                   help="with --exact-pose: a per-episode lateral bias of up to this many mm "
+                        "(0-20)")
     p.add_argument("--save", default=None, help="also write the observed steps (pixel "
                    "observation, true window_pos_rel + window_rot_rel, episode) to this .npz")
     args = p.parse_args(argv)
     if not 1 <= args.episodes <= 200:
         p.error(f"--episodes {args.episodes}: allowed 1-200")
+    if not 0.0 <= args.bias_mm <= 20.0 or (args.bias_mm and not args.exact_pose):
+        p.error(f"--bias-mm {args.bias_mm}: allowed 0-20, and only with --exact-pose")
     from window_bench.envs.task import FAILURE_MODE_NAMES
     from window_bench.harness.evaluation import _eval_rollout, load_policy_file
     from window_bench.harness.seeds import DEV_SEED0
@@ -45,17 +58,30 @@ def main(argv=None) -> int:
         p.error(f"{args.policy}: the policy carries no pose read-out (not a pixels-seat run)")
     pos = FLAT_SLICES["window_pos_rel"]
     rot = FLAT_SLICES["window_rot_rel"]
+    true_pose = torch.zeros(1, 6)      # the pose the policy acts on with --exact-pose
+    if args.exact_pose:
+        read_out = readout.estimate    # kept for the comparison below
+        readout.estimate = lambda obs: true_pose.expand(obs.shape[0], 6)
+    else:
+        read_out = readout.estimate
+    rng = np.random.default_rng(0)
+    seated_count = 0
     rows = {True: [], False: []}
     saved = {"x": [], "y": [], "ep": []}
     for i in range(args.episodes):
         rollout.reset(seed=DEV_SEED0 + i, episode_id=i)
+        bias = np.zeros(6)
+        bias[[0, 2]] = rng.uniform(-args.bias_mm, args.bias_mm, 2) / 1000.0
         est, true = [], []
         while not rollout.done:
+            if args.exact_pose:
+                flat = privileged_state(env)
+                true_pose[0] = torch.from_numpy(np.concatenate([flat[pos], flat[rot]]) + bias)
             obs = np.asarray(rollout.obs, np.float32)[None]
             held = bool(env.unwrapped.suction_engaged)
             if held and not np.isnan(obs).all():   # rendered on the policy's chunk grid only
                 with torch.no_grad():
-                    est.append(readout.estimate(torch.from_numpy(obs))[0, :3].double().numpy())
+                    est.append(read_out(torch.from_numpy(obs))[0, :3].double().numpy())
                 flat = privileged_state(env)
                 true.append(flat[pos])
                 if args.save:
@@ -63,6 +89,7 @@ def main(argv=None) -> int:
                     saved["y"].append(np.concatenate([flat[pos], flat[rot]]))
             rollout.step()
         seated = bool(rollout.terminated)
+        seated_count += seated
         e, t = np.array(est), np.array(true)
         rows[seated].append((e, t))
         if not seated:
@@ -84,6 +111,8 @@ def main(argv=None) -> int:
                 err = np.sqrt((((e[m] - t[m]) * 1000) ** 2).mean(0))
                 print(f"  {lo * 1000:5.0f}-{hi * 1000:3.0f} mm: {m.sum():5d} steps, RMSE "
                       f"{err.round(2)}, true spread {(t[m].std(0) * 1000).round(2)}")
+    print(f"seated {seated_count} of {args.episodes} ({'true pose' if args.exact_pose else 'read-out'}"
+          f"{f', bias up to {args.bias_mm:g} mm' if args.bias_mm else ''})")
     env.close()
     if args.save:
         np.savez(args.save, **{k: np.asarray(v) for k, v in saved.items()})
