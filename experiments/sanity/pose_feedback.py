@@ -41,7 +41,10 @@ def main(argv=None) -> int:
     from window_bench.pixels.track import privileged_state
 
     torch.set_num_threads(1)
-    agent_cls, policy, meta = load_policy_file(args.policy)
+    try:
+        agent_cls, policy, meta = load_policy_file(args.policy)
+    except (OSError, ValueError) as e:
+        p.error(str(e))
     rollout, env = _eval_rollout(agent_cls, policy, meta["env_id"], 600)
     agent = rollout.policy.agent
     demos = load_demos(args.demos_dir, meta["env_id"], args.operator)[: args.demos]

@@ -38,11 +38,14 @@ def main(argv=None) -> int:
     from window_bench.pixels.track import privileged_state
 
     torch.set_num_threads(1)
-    s_cls, s_state, s_meta = load_policy_file(args.state_policy)
+    try:
+        s_cls, s_state, s_meta = load_policy_file(args.state_policy)
+        p_cls, p_state, p_meta = load_policy_file(args.pixel_policy)
+    except (OSError, ValueError) as e:
+        p.error(str(e))
     if getattr(s_cls, "track", "state") != "state":
         p.error(f"{args.state_policy}: not a state-track policy")
     state_agent = s_cls.from_policy_state_dict(s_state)
-    p_cls, p_state, p_meta = load_policy_file(args.pixel_policy)
     if p_meta["env_id"] != s_meta["env_id"]:
         p.error(f"the policies are for {s_meta['env_id']} and {p_meta['env_id']}")
     rollout, env = _eval_rollout(p_cls, p_state, p_meta["env_id"], 600)
