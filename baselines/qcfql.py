@@ -167,9 +167,9 @@ class QCFQLConfig:
     steps that needed rescuing); ``"demo"``, the chunks of D_demo only;
     ``"demo_and_takeover"``, D_demo and the installer's takeover steps whatever the episode's
     outcome (DAgger's data: the corrections at the states the policy reaches). The critic
-    and the student use every chunk in all of them. Not in the paper: on WindowInstall-A, flow BC on all online chunks
-    took the averaged student from 80 % to 5 % in 4k updates, and on the takeover steps
-    alone to 0 %; complete runs ended at 20 % (``"replay"``), 40-80 % (``"accepted"``) and
+    and the student use every chunk in all of them. Not in the paper: on WindowInstall-A,
+    flow BC on all online chunks took the averaged student from 80 % to 5 % in 4k updates,
+    and on the takeover steps alone to 0 %; complete runs ended at 20 % (``"replay"``), 40-80 % (``"accepted"``) and
     80-85 % (``"accepted_no_takeover"``) (``docs/harness.md``)."""
 
     distill_data: str = "batch"

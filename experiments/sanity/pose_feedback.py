@@ -18,9 +18,13 @@ Replays the first ``--demos`` demonstrations step by step in the env of the poli
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 SHIFT_M = 0.005
 BANDS = ((0.0, 0.02), (0.02, 0.1), (0.1, 0.3), (0.3, 9.0))
@@ -35,16 +39,14 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if not 1 <= args.demos <= 50:
         p.error(f"--demos {args.demos}: allowed 1-50")
-    from window_bench.harness.evaluation import _eval_rollout, load_policy_file
+    from rollout_args import load_policy_or_exit
+    from window_bench.harness.evaluation import _eval_rollout
     from window_bench.installer.demos import load_demos
     from window_bench.installer.supervisor import FLAT_SLICES
     from window_bench.pixels.track import privileged_state
 
     torch.set_num_threads(1)
-    try:
-        agent_cls, policy, meta = load_policy_file(args.policy)
-    except (OSError, ValueError) as e:
-        p.error(str(e))
+    agent_cls, policy, meta = load_policy_or_exit(p, args.policy)
     rollout, env = _eval_rollout(agent_cls, policy, meta["env_id"], 600)
     agent = rollout.policy.agent
     demos = load_demos(args.demos_dir, meta["env_id"], args.operator)[: args.demos]

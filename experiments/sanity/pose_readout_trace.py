@@ -21,9 +21,13 @@ how much read-out error does it tolerate?
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 BINS = ((0.0, 0.005), (0.005, 0.02), (0.02, 0.05), (0.05, 0.1), (0.1, 0.2))
 
@@ -45,13 +49,14 @@ def main(argv=None) -> int:
     if not 0.0 <= args.bias_mm <= 20.0 or (args.bias_mm and not args.exact_pose):
         p.error(f"--bias-mm {args.bias_mm}: allowed 0-20, and only with --exact-pose")
     from window_bench.envs.task import FAILURE_MODE_NAMES
-    from window_bench.harness.evaluation import _eval_rollout, load_policy_file
+    from rollout_args import load_policy_or_exit
+    from window_bench.harness.evaluation import _eval_rollout
     from window_bench.harness.seeds import DEV_SEED0
     from window_bench.installer.supervisor import FLAT_SLICES
     from window_bench.pixels.track import privileged_state
 
     torch.set_num_threads(1)
-    agent_cls, policy, meta = load_policy_file(args.policy)
+    agent_cls, policy, meta = load_policy_or_exit(p, args.policy)
     rollout, env = _eval_rollout(agent_cls, policy, meta["env_id"], 600)
     readout = rollout.policy.agent.encoder.pose_readout
     if readout is None:

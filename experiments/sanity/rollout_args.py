@@ -1,6 +1,8 @@
 """The command-line checks the rollout diagnostics share (``chunk_replan.py``,
 ``failure_trace.py``, ``pixel_embedding_probe.py``): a registered env, a number of
-development seeds, an output file that does not exist yet. Each returns the one-line
+development seeds, an output file that does not exist yet; and a policy file loaded or
+refused in one line (``pose_feedback.py``, ``pose_readout_trace.py``,
+``state_policy_on_readout.py``). Each returns the one-line
 messages of what is wrong (empty: all good), so a script reports every problem at once and
 exits 2 before any work."""
 
@@ -27,3 +29,14 @@ def episodes_errors(episodes: int) -> list[str]:
 
 def out_errors(out: str) -> list[str]:
     return [f"--out {out} exists; choose another file"] if Path(out).exists() else []
+
+
+def load_policy_or_exit(parser, path: str):
+    """``load_policy_file(path)``, or the script's one-line error (exit 2) naming the file and
+    what is wrong with it (missing, not a policy file, a kind no agent reads)."""
+    from window_bench.harness.evaluation import load_policy_file
+
+    try:
+        return load_policy_file(path)
+    except (OSError, ValueError) as e:
+        parser.error(str(e))

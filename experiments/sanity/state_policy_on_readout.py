@@ -14,10 +14,14 @@ distance to the seat.
 from __future__ import annotations
 
 import argparse
+import sys
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 BANDS = ((0.0, 0.02), (0.02, 0.06), (0.06, 0.115), (0.115, 0.2), (0.2, 1.0))
 
@@ -32,17 +36,15 @@ def main(argv=None) -> int:
     if not 1 <= args.episodes <= 200:
         p.error(f"--episodes {args.episodes}: allowed 1-200")
     from window_bench.envs.task import FAILURE_MODE_NAMES
-    from window_bench.harness.evaluation import _eval_rollout, load_policy_file
+    from rollout_args import load_policy_or_exit
+    from window_bench.harness.evaluation import _eval_rollout
     from window_bench.harness.seeds import DEV_SEED0
     from window_bench.installer.supervisor import FLAT_SLICES
     from window_bench.pixels.track import privileged_state
 
     torch.set_num_threads(1)
-    try:
-        s_cls, s_state, s_meta = load_policy_file(args.state_policy)
-        p_cls, p_state, p_meta = load_policy_file(args.pixel_policy)
-    except (OSError, ValueError) as e:
-        p.error(str(e))
+    s_cls, s_state, s_meta = load_policy_or_exit(p, args.state_policy)
+    p_cls, p_state, p_meta = load_policy_or_exit(p, args.pixel_policy)
     if getattr(s_cls, "track", "state") != "state":
         p.error(f"{args.state_policy}: not a state-track policy")
     state_agent = s_cls.from_policy_state_dict(s_state)
