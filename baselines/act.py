@@ -53,7 +53,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from window_bench.data.steplog import ACTION_DIM, EpisodeLog
+from window_bench.data.steplog import ACTION_DIM, EpisodeLog, without_noops
 from window_bench.envs.task import FAILURE_MODE_NAMES, STAGES
 from window_bench.harness.agent import (Agent, AgentSpec, generator_state, load_optimizer_state,
                                         module_state, optimizer_state, with_overrides)
@@ -78,7 +78,10 @@ class ACTConfig:
     ACT is evaluated (Zhao et al. 2023, Sec. 3.3); False executes each chunk open-loop
     (``h`` = ``chunk``)."""
     ensemble_coeff: float = 0.01
-    """``m`` in the ensembling weights ``exp(-m i)``, ``i`` = 0 for the oldest prediction."""
+    """``m`` in the ensembling weights ``exp(-m i)``, ``i`` = 0 for the oldest prediction.
+    ACT's ``m`` >= 0 weights the oldest most ("a smaller m means faster incorporation of new
+    observations"); ``m`` < 0 carries that on and weights the newest most (docs/act.md,
+    "Temporal ensembling weights"). At most ``|m| <= 5``."""
     d_model: int = 512
     """Width of every transformer token."""
     n_heads: int = 8
@@ -129,6 +132,14 @@ class ACTConfig:
     loss: str = "l1"
     """Reconstruction term: ``"l1"`` (ACT) or ``"l2"`` (squared error, a departure measured in
     docs/act.md "Why ACT fails where flow BC succeeds")."""
+    drop_noops: bool = False
+    """Train on the demonstrations without their no-op steps in free space (not in ACT; the
+    operator model's hesitation pauses before the panel enters the opening,
+    :func:`window_bench.data.steplog.without_noops`), as OpenVLA's data preparation drops
+    no-op actions: a deterministic imitator otherwise learns to stand still where a
+    demonstrator paused. The stops once the panel is in the opening stay: there the
+    demonstrator lets the panel settle centred, as the acceptance test needs. The normaliser
+    is fitted on the same steps."""
 
     def __post_init__(self):
         for name in ("chunk", "d_model", "n_heads", "ff", "enc_layers", "vae_enc_layers",
@@ -138,20 +149,19 @@ class ACTConfig:
         if self.d_model % self.n_heads:
             raise ValueError(f"ACTConfig.n_heads = {self.n_heads} must divide "
                              f"d_model = {self.d_model}")
-        if not isinstance(self.cvae, bool):
-            raise ValueError(f"ACTConfig.cvae = {self.cvae!r} must be True or False")
-        if not isinstance(self.temporal_ensembling, bool):
-            raise ValueError(f"ACTConfig.temporal_ensembling = {self.temporal_ensembling!r} "
-                             f"must be True or False")
+        for name in ("cvae", "temporal_ensembling", "drop_noops"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"ACTConfig.{name} = {getattr(self, name)!r} must be True "
+                                 f"or False")
         for name, lo, hi, hi_open in (("dropout", 0.0, 1.0, True),
-                                      ("ensemble_coeff", 0.0, math.inf, True),
+                                      ("ensemble_coeff", -5.0, 5.0, False),
                                       ("kl_weight", 0.0, math.inf, True),
                                       ("weight_decay", 0.0, math.inf, True)):
             v = getattr(self, name)
             ok = _is_real(v) and lo <= v and (v < hi if hi_open else v <= hi)
             if not ok:
                 raise ValueError(f"ACTConfig.{name} = {v!r} is not allowed: must lie in "
-                                 f"[{lo}, {hi})")
+                                 f"[{lo}, {hi}{')' if hi_open else ']'}")
         if self.loss not in ("l1", "l2"):
             raise ValueError(f"ACTConfig.loss = {self.loss!r} is not allowed: use 'l1' or 'l2'")
         if not (_is_real(self.obs_clip) and self.obs_clip >= 0):
@@ -228,7 +238,8 @@ def act_loss(pred: torch.Tensor, target: torch.Tensor, is_pad: torch.Tensor,
 
 
 def temporal_ensemble(chunks, coeff: float = 0.01) -> np.ndarray:
-    """Average of every prediction for the current step, oldest prediction weighted most.
+    """Average of every prediction for the current step, oldest prediction weighted most
+    (``coeff`` > 0; the newest most for ``coeff`` < 0).
 
     ``chunks`` are the chunks predicted at the last ``n`` consecutive steps, oldest first,
     each (k, A) with ``n <= k``: chunk ``j`` was predicted ``n - 1 - j`` steps ago, so its
@@ -243,7 +254,8 @@ def temporal_ensemble(chunks, coeff: float = 0.01) -> np.ndarray:
         raise ValueError(f"temporal_ensemble: {n} chunks but chunk length "
                          f"{chunks[0].shape[0]}; at most k chunks overlap the current step")
     preds = np.stack([c[n - 1 - j] for j, c in enumerate(chunks)])  # (n, A), oldest first
-    w = np.exp(-coeff * np.arange(n))
+    e = -coeff * np.arange(n)
+    w = np.exp(e - e.max())          # the same normalised weights, finite for any coeff < 0
     return (w[:, None] * preds).sum(0) / w.sum()
 
 
@@ -512,18 +524,28 @@ class ACTAgent(Agent):
         return self.config.offline_steps
 
     def attach_demos(self, demos) -> None:
-        self._demo_stack = _stack_episodes(demos, self.obs_dim, self.config.chunk)
+        self._demo_stack = self._training_stack(demos, self.config.chunk)
 
     def learn(self, sample) -> tuple[dict[str, float], int]:
         """One :meth:`update` on ``batch_size`` chunks of the demos (:meth:`attach_demos`);
         ACT trains on D_demo only, so the harness's ``sample`` is not used."""
         return self.update(_draw(self._demo_stack, self.config.batch_size, self.rng)), 1
 
+    def _training_stack(self, episodes, k: int) -> dict:
+        """The chunk stack of the episodes ACT trains on (without their no-op steps when
+        ``config.drop_noops``)."""
+        episodes = [episodes] if isinstance(episodes, EpisodeLog) else list(episodes)
+        if self.config.drop_noops:
+            episodes = [without_noops(ep, before="insertion_entered")
+                        if isinstance(ep, EpisodeLog) else ep
+                        for ep in episodes]
+        return _stack_episodes(episodes, self.obs_dim, k)
+
     # ------------------------------------------------------------------ normalisation
     def fit_normalizer(self, episodes) -> None:
         """Z-score statistics of the observations ``s_0 .. s_{T-1}`` and the actions of
         ``episodes``; standard deviations are floored at ``config.std_floor``."""
-        stack = _stack_episodes(episodes, self.obs_dim, 1)
+        stack = self._training_stack(episodes, 1)
         real = np.concatenate([np.arange(n) + o for n, o in zip(stack["lengths"],
                                                                   stack["act_offset"])])
         obs, act = stack["obs"].astype(np.float64), stack["actions"][real].astype(np.float64)
@@ -562,7 +584,7 @@ class ACTAgent(Agent):
         zero past the episode end; ``is_pad`` (B, k) True there; ``episode`` and ``start``
         (B,) say where each chunk came from.
         """
-        return _draw(_stack_episodes(episodes, self.obs_dim, self.config.chunk),
+        return _draw(self._training_stack(episodes, self.config.chunk),
                      batch_size, generator)
 
     def update(self, batch: dict) -> dict[str, float]:
@@ -609,7 +631,7 @@ class ACTAgent(Agent):
         Returns one ``update`` dict per step.
         """
         _check_int("steps", steps, 0)
-        stack = _stack_episodes(episodes, self.obs_dim, self.config.chunk)
+        stack = self._training_stack(episodes, self.config.chunk)
         if self.norm is None:
             self.fit_normalizer(episodes)
         it = range(steps)

@@ -14,7 +14,7 @@ from baselines.act import (ACT_PROFILES, FLAT_ROBOT_DIM, ACTAgent, ACTConfig, _c
                            act_loss, kl_to_prior, temporal_ensemble)
 from window_bench.envs.env import STATE_KEYS
 from window_bench.envs.task import STAGES
-from window_bench.data.steplog import EpisodeLog
+from window_bench.data.steplog import EpisodeLog, without_noops
 
 torch.set_num_threads(1)
 SMOKE = ACT_PROFILES["smoke"]
@@ -265,6 +265,15 @@ def test_ensembling_weights_are_exp_minus_001_i_oldest_first():
     np.testing.assert_allclose(temporal_ensemble(chunks, 0.01), w / w.sum(), rtol=1e-12)
     assert ACTConfig().ensemble_coeff == 0.01
     assert all(c.temporal_ensembling for c in ACT_PROFILES.values())
+    # m < 0 weighs the newest most: the same weights reversed, finite even for a long chunk.
+    w_new = np.exp(0.5 * np.arange(k))
+    np.testing.assert_allclose(temporal_ensemble(chunks, -0.5), w_new / w_new.sum(), rtol=1e-12)
+    long = [np.tile(np.eye(300)[j], (300, 1)) for j in range(300)]   # chunk j says e_j
+    assert np.isfinite(temporal_ensemble(long, -5.0)).all()
+    assert temporal_ensemble(long, -5.0)[299] == pytest.approx(1 / np.exp(-5.0 * np.arange(300)).sum())
+    for bad in (-5.1, 6.0, float("nan")):
+        with pytest.raises(ValueError, match=r"ensemble_coeff.*\[-5.0, 5.0\]"):
+            ACTConfig(ensemble_coeff=bad)
 
 
 def test_harness_evaluates_act_with_a_query_every_step(monkeypatch):
@@ -320,6 +329,55 @@ def test_sample_batch_pads_past_the_episode_end():
     assert 0.06 < np.mean(b["episode"] == 1) < 0.18
     with pytest.raises(ValueError, match="obs_dim"):
         agent.sample_batch([synthetic_episode(5, 0, obs_dim=10)], 4, np.random.default_rng(0))
+
+
+def episode_with_pauses():
+    """23 steps; steps 4-6 and 15 are hesitation pauses (no motion, vacuum held), step 9 only
+    switches the vacuum on, the last step is a pause too."""
+    ep = synthetic_episode(23, 0)
+    ep.actions[:, 6] = -1.0
+    ep.actions[9:, 6] = 1.0
+    for t in (4, 5, 6, 9, 15, 22):
+        ep.actions[t, :6] = 0.0
+    return ep
+
+
+def test_without_noops_drops_the_pauses_only_and_keeps_the_log_complete():
+    ep = episode_with_pauses()
+    out = without_noops(ep)
+    out.validate()
+    kept = [t for t in range(23) if t not in (4, 5, 6, 15)]   # 9 switches the vacuum; 22 ends
+    assert out.T == len(kept)
+    assert np.array_equal(out.actions, ep.actions[kept])
+    assert np.array_equal(out.observations[:-1], ep.observations[kept])
+    assert np.array_equal(out.observations[-1], ep.observations[-1])
+    assert out.terminated[-1] and not out.terminated[:-1].any()
+    assert without_noops(synthetic_episode(23, 1)).T == 23      # nothing to drop
+    ep.stage_flags[12:, 1] = True                               # entered the opening at 12
+    inside = without_noops(ep, before="insertion_entered")
+    assert np.array_equal(inside.actions, ep.actions[[t for t in range(23) if t not in (4, 5, 6)]])
+    assert without_noops(ep, before="seated").T == out.T
+    with pytest.raises(ValueError, match="before='entered'"):
+        without_noops(ep, before="entered")
+
+
+def test_drop_noops_trains_and_normalises_on_the_moving_steps_only():
+    ep = episode_with_pauses()
+    pauses = ep.observations[[4, 5, 6, 15]]
+    agent = ACTAgent(OBS_DIM, config=replace(SMOKE, drop_noops=True))
+    b = agent.sample_batch([ep], 400, np.random.default_rng(0))
+    assert not any((b["obs"] == p).all(1).any() for p in pauses)
+    pause_action = np.array([0, 0, 0, 0, 0, 0, -1], np.float32)   # steps 4-6, vacuum off
+    assert not (b["actions"][~b["is_pad"]] == pause_action).all(1).any()
+    agent.fit_normalizer([ep])
+    kept = without_noops(ep)
+    assert np.allclose(agent.norm["obs_mean"].numpy(), kept.observations[:-1].mean(0), atol=1e-6)
+    plain = ACTAgent(OBS_DIM, config=SMOKE)
+    b = plain.sample_batch([ep], 400, np.random.default_rng(0))
+    assert any((b["obs"] == p).all(1).any() for p in pauses)
+    assert (b["actions"][~b["is_pad"]] == pause_action).all(1).any()
+    with pytest.raises(ValueError, match="drop_noops"):
+        ACTConfig(drop_noops="yes")
 
 
 def test_normalizer_floors_constant_dims():

@@ -247,3 +247,32 @@ class EpisodeLog:
         if not isinstance(self.randomization, dict):
             raise ValueError(f"EpisodeLog.randomization: expected a dict, got "
                              f"{type(self.randomization).__name__}")
+
+
+def without_noops(ep: EpisodeLog, before: str | None = None) -> EpisodeLog:
+    """``ep`` without its no-op steps: steps whose six motion commands are all zero and whose
+    vacuum command repeats the previous step's (an operator's hesitation pause); with
+    ``before`` (a name in :data:`STAGE_FLAGS`), only those before that stage event.
+
+    The idle frames of teleoperated data teach a deterministic imitator to stand still where
+    a demonstrator paused, and a policy that stands still sees the same state again; OpenVLA's
+    LIBERO data preparation (Kim et al. 2024, Sec. 5.1) drops them for that reason. The kept
+    steps keep their own observation, action and flags in order; the last step and ``s_T``
+    are always kept, so the log stays complete.
+    """
+    act = np.asarray(ep.actions)
+    prev_vacuum = np.concatenate([[np.nan], act[:-1, 6]])
+    keep = (np.abs(act[:, :6]).max(axis=1) > 0) | (act[:, 6] != prev_vacuum)
+    if before is not None:
+        if before not in STAGE_FLAGS:
+            raise ValueError(f"without_noops: before={before!r}; allowed: {STAGE_FLAGS}")
+        keep |= np.asarray(ep.stage_flags)[:, STAGE_FLAGS.index(before)]
+    keep[-1] = True
+    idx = np.flatnonzero(keep)
+    return EpisodeLog(
+        observations=np.concatenate([ep.observations[idx], ep.observations[-1:]]),
+        actions=act[idx], rewards=ep.rewards[idx], terminated=ep.terminated[idx],
+        truncated=ep.truncated[idx], provenance=ep.provenance[idx],
+        takeover_kind=ep.takeover_kind[idx], episode_id=ep.episode_id, env_id=ep.env_id,
+        seed=ep.seed, chunk_horizon=ep.chunk_horizon, stage_flags=ep.stage_flags[idx],
+        randomization=dict(ep.randomization), operator=ep.operator)
