@@ -15,7 +15,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _results(root: Path, method: str, env: str, seed: int, success: float, *, h=None,
-             seed_set="test", M=100, overrides=None, episodes=None, cycle=25.0, track=None):
+             seed_set="test", M=100, overrides=None, episodes=None, cycle=25.0, track=None,
+             operator=None):
     """A results.json as bench run writes it (the fields bench tables reads)."""
     m = METHODS[method].as_dict()
     if h is not None:
@@ -34,7 +35,10 @@ def _results(root: Path, method: str, env: str, seed: int, success: float, *, h=
          "provenance": {"git_commit": "unknown"}}
     if track is not None:           # files from before the track setting have none: state
         r["track"] = track
-    tag = "".join(f"-{a}{b}" for a, b in (overrides or {}).items()) + (f"-{track}" if track else "")
+    if operator is not None:
+        r["operator"] = operator
+    tag = ("".join(f"-{a}{b}" for a, b in (overrides or {}).items()) + (f"-{track}" if track else "")
+           + (f"-{operator}" if operator else ""))
     d = root / env / f"{method}{'' if h is None else f'-h{h}'}{tag}-smoke-{seed_set}-s{seed}"
     d.mkdir(parents=True)
     (d / "results.json").write_text(json.dumps(r))
@@ -97,6 +101,22 @@ def test_overrides_are_their_own_row_without_a_paper_number(tmp_path):
     assert "- Variant 1: `qcfql` with `policy_ema=0.0`.\n" in t2
     plain = next(ln for ln in t2.splitlines() if ln.startswith("| Ours (complete pipeline) |"))
     assert "| **70** | 100 [96, 100] |" in plain
+
+
+def test_another_operator_is_its_own_row_named_in_its_note(tmp_path):
+    runs = tmp_path / "runs"
+    _results(runs, "qcfql-offline", "WindowInstall-B-v0", 0, 0.4, operator="attentive",
+             overrides={"fine_pose_mm": 10.0})
+    _results(runs, "qcfql-offline", "WindowInstall-B-v0", 0, 0.3, operator="attentive")
+    _results(runs, "qcfql-offline", "WindowInstall-B-v0", 0, 0.1, operator="average")
+    t3 = build(runs, tmp_path / "out", figures=False)["table3.md"]
+    rows = [ln for ln in t3.splitlines() if ln.startswith("| Ours (offline-only)")]
+    assert len(rows) == 3
+    plain = next(ln for ln in rows if ln.startswith("| Ours (offline-only) |"))
+    assert "| **10** |" in plain and "| 75 |" in plain       # the paper's number stays here
+    assert "- Variant 1: `qcfql-offline` with `fine_pose_mm=10.0`, `operator=\"attentive\"`.\n" in t3
+    assert "- Variant 2: `qcfql-offline` with `operator=\"attentive\"`.\n" in t3
+    assert all("| 75 |" not in ln for ln in rows if ", variant" in ln)
 
 
 def test_a_variant_that_is_a_preset_is_named_by_it(tmp_path):

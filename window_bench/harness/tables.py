@@ -3,7 +3,8 @@
 Inputs are only the raw files ``bench run`` / ``bench sweep`` wrote under a runs root:
 ``<env>/<run>/results.json`` of training cells and ``<ood env>/<run>.json`` (``bench eval``
 output) of Table 7's evaluation-only cells, whose training cell is ``<env>/<run>``. Cells are grouped into table rows by what was run (method,
-h, agent-config overrides, observation track, profile, evaluation seed set, M); within a row the
+h, agent-config overrides, operator profile, observation track, profile, evaluation seed set,
+M); within a row the
 seeds are the samples, so a cell never mixes the privileged-state and the pixel track: each
 row names its track where it differs from the table's usual one. Per cell we print our mean
 over seeds with a 95 % bootstrap interval across seeds and the paper's number beside it
@@ -102,7 +103,13 @@ def _final(r: dict) -> tuple[dict, str, int]:
 
 
 def _overrides(r: dict) -> tuple:
-    return tuple(sorted((k, json.dumps(v)) for k, v in (r.get("agent_config_overrides") or {}).items()))
+    """A row's departures from the method's defaults: its agent-config overrides and, when
+    its demonstrations and takeovers came from another operator profile than the paper's
+    `average`, that profile (cells that differ in either never share a row)."""
+    pairs = dict(r.get("agent_config_overrides") or {})
+    if r.get("operator", "average") != "average":
+        pairs["operator"] = r["operator"]
+    return tuple(sorted((k, json.dumps(v)) for k, v in pairs.items()))
 
 
 def _skip(e: Exception) -> None:
