@@ -80,8 +80,8 @@ class ACTConfig:
     ensemble_coeff: float = 0.01
     """``m`` in the ensembling weights ``exp(-m i)``, ``i`` = 0 for the oldest prediction.
     ACT's ``m`` >= 0 weights the oldest most ("a smaller m means faster incorporation of new
-    observations"); ``m`` < 0 carries that on and weights the newest most (docs/act.md,
-    "Temporal ensembling weights"). At most ``|m| <= 5``."""
+    observations"); ``m`` < 0 carries that on and weights the newest most (docs/act.md, "The
+    ensembling weights move each policy differently"). ``m`` lies in [-5, 5]."""
     d_model: int = 512
     """Width of every transformer token."""
     n_heads: int = 8
@@ -136,10 +136,9 @@ class ACTConfig:
     """Train on the demonstrations without their no-op steps in free space (not in ACT; the
     operator model's hesitation pauses before the panel enters the opening,
     :func:`window_bench.data.steplog.without_noops`), as OpenVLA's data preparation drops
-    no-op actions: a deterministic imitator otherwise learns to stand still where a
-    demonstrator paused. The stops once the panel is in the opening stay: there the
-    demonstrator lets the panel settle centred, as the acceptance test needs. The normaliser
-    is fitted on the same steps."""
+    no-op actions: a deterministic imitator may learn to stand still where a demonstrator
+    paused. Pauses once the panel is in the opening stay. The normaliser is fitted on the
+    same steps. Measured in docs/act.md: it seats fewer on A."""
 
     def __post_init__(self):
         for name in ("chunk", "d_model", "n_heads", "ff", "enc_layers", "vae_enc_layers",

@@ -2,10 +2,10 @@
 
 Inputs are only the raw files ``bench run`` / ``bench sweep`` wrote under a runs root:
 ``<env>/<run>/results.json`` of training cells and ``<ood env>/<run>.json`` (``bench eval``
-output) of Table 7's evaluation-only cells, whose training cell is ``<env>/<run>``. Cells are grouped into table rows by what was run (method,
-h, agent-config overrides, operator profile, observation track, profile, evaluation seed set,
-M); within a row the
-seeds are the samples, so a cell never mixes the privileged-state and the pixel track: each
+output) of Table 7's evaluation-only cells, whose training cell is ``<env>/<run>``. Cells are
+grouped into table rows by what was run (method, h, agent-config overrides, operator profile,
+observation track, profile, evaluation seed set, M); within a row the seeds are the
+samples, so a cell never mixes the privileged-state and the pixel track: each
 row names its track where it differs from the table's usual one. Per cell we print our mean
 over seeds with a 95 % bootstrap interval across seeds and the paper's number beside it
 (:file:`paper_tables.csv`, transcribed from the paper), per row n, and below each table every
