@@ -94,6 +94,22 @@ def test_list_overrides_name_cells_as_the_leaderboard_names_runs(tmp_path):
         "WindowInstall-B-v0/qcfql-student_hidden512x512x512x512-cpu-s2"}
 
 
+def test_operator_cells_are_named_apart_as_the_leaderboard_names_runs(tmp_path):
+    """A grid of another operator profile must not land on the default operator's cells."""
+    from window_bench.harness.leaderboard import run_dest
+
+    g = _grid(tmp_path, 'operator = "attentive"\n' + GRID)
+    c = next(c for c in g.cells if c.method == "qcfql" and c.seed == 0)
+    assert c.name == "WindowInstall-A-v0/qcfql-attentive-smoke-s0"
+    argv = cell_command(c, g, tmp_path, resume=False)
+    assert argv[argv.index("--operator") + 1] == "attentive"
+    default = next(c for c in _grid(tmp_path, GRID).cells if c.method == "qcfql" and c.seed == 0)
+    assert default.name == "WindowInstall-A-v0/qcfql-smoke-s0"
+    results = {"env_id": c.env_id, "method": {"name": c.method}, "profile": {"name": c.profile},
+               "seed": c.seed, "track": "state", "operator": "attentive"}
+    assert run_dest(results, tmp_path) == c.path(tmp_path)
+
+
 def test_eval_workers_reach_every_cell_command(tmp_path):
     g = _grid(tmp_path, "eval_workers = 1\n" + GRID)
     assert g.eval_workers == 1

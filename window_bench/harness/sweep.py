@@ -69,6 +69,7 @@ from window_bench.harness.methods import agent_class, get_method, get_profile
 from window_bench.harness.schemas import FIELD_NAME, POLICY_FILE, SAFE_NAME, read_json
 from window_bench.harness.seeds import SEED_SETS
 from window_bench.harness.tracks import DEFAULT_TRACK, TRACKS, get_track
+from window_bench.installer.operators import DEFAULT_OPERATOR
 
 GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "eval_workers",
              "track", "train", "evaluate"}
@@ -96,6 +97,7 @@ class Cell:
     agent_config: tuple = ()                   # sorted (key, value) pairs
     on: str | None = None
     track: str = DEFAULT_TRACK                 # observation track (harness/tracks.py)
+    operator: str = DEFAULT_OPERATOR           # the grid's operator profile
 
     @property
     def train_cell(self) -> "Cell":
@@ -107,6 +109,7 @@ class Cell:
         tag = f"-h{self.h}" if self.h is not None else ""
         tag += override_tag(self.agent_config)
         tag += "" if self.track == DEFAULT_TRACK else f"-{self.track}"   # as bench leaderboard does
+        tag += "" if self.operator == DEFAULT_OPERATOR else f"-{self.operator}"
         return f"{self.on or self.env_id}/{self.method}{tag}-{self.profile}-s{self.seed}"
 
     def path(self, out: Path) -> Path:
@@ -190,7 +193,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
         _fail(path, f"title = {doc['title']!r}; allowed: a string")
     from window_bench.installer.operators import OPERATORS
 
-    operator = doc.get("operator", "average")
+    operator = doc.get("operator", DEFAULT_OPERATOR)
     if operator not in OPERATORS:
         _fail(path, f"operator = {operator!r}; allowed: {', '.join(sorted(OPERATORS))}")
     track = doc.get("track", DEFAULT_TRACK)
@@ -296,7 +299,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
         cfg = overrides(block, spec, methods, hs)
         for m, h, e, s in itertools.product(methods, hs, envs, seeds):
             cells.append(Cell(m, e, s, profile, h if h != get_method(m).h else None, cfg,
-                              track=track))
+                              track=track, operator=operator))
     for i, spec in enumerate(doc.get("evaluate", [])):
         block = f"evaluate[{i}]"
         if set(spec) - EVALUATE_KEYS:
@@ -313,7 +316,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
         for h, s, target in itertools.product(hs, seeds, on):
             cells.append(Cell(method, spec["env"], s, profile,
                               h if h != get_method(method).h else None, cfg, on=target,
-                              track=track))
+                              track=track, operator=operator))
     if not cells:
         _fail(path, "declares no cells (add a [[train]] or [[evaluate]] block)")
     unique = tuple(dict.fromkeys(cells))
