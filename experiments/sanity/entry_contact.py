@@ -34,6 +34,7 @@ from rollout_args import env_errors, episodes_errors, load_policy_or_exit, out_e
 #: meets the wall face about 90-100 mm out).
 ENTRY_MM = (-120.0, -40.0)
 DEEP_MM = -60.0
+EDGE_MM = -80.0   # a first contact farther out than this is at the entry edge
 
 
 def _actor(args, parser, env):
@@ -130,6 +131,9 @@ def summary(eps: list[dict]) -> dict:
             "max_moment_10_Nm_median": med([e["first_contact"]["max_moment_10_Nm"]
                                             for e in touched]),
             "backed_off_5mm": sum(e["first_contact"]["backoff_mm"] >= 5 for e in touched),
+            "stalled_at_edge": sum(e["first_contact"]["depth_mm"] < EDGE_MM
+                                   and e["first_contact"]["steps_to_60mm"] is None
+                                   for e in touched),
             "reached_60mm": len(passed), "median_steps_to_60mm": med(passed),
             "episodes_with_grip_break": sum(bool(e["grip_breaks"]) for e in eps),
             "episodes_with_grip_break_at_entry": len(at_entry),
