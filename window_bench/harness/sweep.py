@@ -69,7 +69,7 @@ from window_bench.harness.methods import agent_class, get_method, get_profile
 from window_bench.harness.schemas import FIELD_NAME, POLICY_FILE, SAFE_NAME, read_json
 from window_bench.harness.seeds import SEED_SETS
 from window_bench.harness.tracks import DEFAULT_TRACK, TRACKS, get_track
-from window_bench.installer.operators import DEFAULT_OPERATOR
+from window_bench.installer.operators import DEFAULT_OPERATOR, OPERATORS
 
 GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "eval_workers",
              "track", "train", "evaluate"}
@@ -191,8 +191,6 @@ def load_grid(path: str | os.PathLike) -> Grid:
         _fail(path, f"table = {table!r}; allowed: an integer in 2..7")
     if not isinstance(doc.get("title", ""), str):
         _fail(path, f"title = {doc['title']!r}; allowed: a string")
-    from window_bench.installer.operators import OPERATORS
-
     operator = doc.get("operator", DEFAULT_OPERATOR)
     if operator not in OPERATORS:
         _fail(path, f"operator = {operator!r}; allowed: {', '.join(sorted(OPERATORS))}")
