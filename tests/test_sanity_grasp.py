@@ -90,3 +90,23 @@ def test_student_gap_splits_by_latch_and_fresh_student_leaves_the_agent_alone():
     assert all(torch.equal(p, q) for p, q in zip(agent.student.parameters(), before))
     assert torch.equal(wide.teacher_actions(agent.normalize(torch.as_tensor(obs)),
                                             torch.zeros(6, 14)), teacher)   # same teacher
+
+
+def _touched(grasp, contact):
+    return [{"grasp_mm": [gx, gy, 45.0], "first_contact": {"lateral_mm": [cx, 0.0, cz]}}
+            for (gx, gy), (cx, cz) in zip(grasp, contact)]
+
+
+def test_entry_contact_reads_a_carried_grip_offset_as_slope_minus_one_and_a_corrected_one_as_zero():
+    ec = _script("entry_contact")
+    grasp = [(-3.0, 1.0), (-1.0, -2.0), (0.5, 0.0), (2.0, 3.0), (4.0, -1.0)]
+    carried = ec.follows_grasp(_touched(grasp, [(-gx, gy) for gx, gy in grasp]))
+    assert carried["across"]["slope"] == pytest.approx(-1.0) and carried["across"]["r"] == -1.0
+    assert carried["vertical"]["slope"] == pytest.approx(1.0) and carried["vertical"]["n"] == 5
+    noise = [(0.3, -0.2), (-0.1, 0.4), (0.2, 0.1), (-0.4, -0.3), (0.1, 0.2)]
+    corrected = ec.follows_grasp(_touched(grasp, noise))
+    assert abs(corrected["across"]["slope"]) < 0.1
+    # no grip recorded, or too few episodes: no number rather than a made-up one
+    assert ec.follows_grasp(_touched(grasp[:2], noise[:2])) == {"across": None, "vertical": None}
+    assert ec.follows_grasp([{"grasp_mm": None, "first_contact": {"lateral_mm": [1, 0, 1]}}]
+                            * 4)["across"] is None

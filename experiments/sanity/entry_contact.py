@@ -113,6 +113,25 @@ def episode(env, reset, act, seed: int) -> dict:
     return rec
 
 
+def follows_grasp(touched: list[dict]) -> dict:
+    """How the panel's offset at the first contact follows where the cup holds it: per axis,
+    the least-squares slope and Pearson r of the contact offset (mm) on the cup's offset from
+    the panel's centre (mm) - across the opening (panel x, world x) and vertically (panel y,
+    world z). Slope -1: the tool goes where it would for a centred grip (the offset is carried
+    to the opening); 0: the grip is corrected for."""
+    out = {}
+    for name, g, c in (("across", 0, 0), ("vertical", 1, 2)):
+        xy = np.array([(e["grasp_mm"][g], e["first_contact"]["lateral_mm"][c])
+                       for e in touched if e["grasp_mm"] is not None])
+        if len(xy) < 3 or np.ptp(xy[:, 0]) == 0 or np.ptp(xy[:, 1]) == 0:
+            out[name] = None
+            continue
+        out[name] = {"slope": round(float(np.polyfit(xy[:, 0], xy[:, 1], 1)[0]), 2),
+                     "r": round(float(np.corrcoef(xy[:, 0], xy[:, 1])[0, 1]), 2),
+                     "grasp_std_mm": round(float(xy[:, 0].std()), 1), "n": len(xy)}
+    return out
+
+
 def summary(eps: list[dict]) -> dict:
     touched = [e for e in eps if e["first_contact"]]
     at_entry = [e for e in eps
@@ -135,6 +154,7 @@ def summary(eps: list[dict]) -> dict:
                                    and e["first_contact"]["steps_to_60mm"] is None
                                    for e in touched),
             "reached_60mm": len(passed), "median_steps_to_60mm": med(passed),
+            "contact_offset_follows_grasp": follows_grasp(touched),
             "episodes_with_grip_break": sum(bool(e["grip_breaks"]) for e in eps),
             "episodes_with_grip_break_at_entry": len(at_entry),
             "failures_with_grip_break_at_entry": sum(not e["success"] for e in at_entry)}
