@@ -1,6 +1,7 @@
-"""Compute accounting of the grid (issue 17): what the committed cells cost on this machine,
-what the whole grid costs, and a projection of the same grid under the ``paper`` profile on
-one GPU.
+"""Compute accounting of the grids: what the committed cells cost on this machine, what the
+whole ``cpu`` grid and the ``long`` grid (the paper's 3.0 h on the ``cpu`` learner) cost, and
+projections of the ``cpu`` grid under the ``paper`` profile and of the ``long`` grid on one
+GPU.
 
     python benchmarks/compute_accounting.py [--runs leaderboard/runs] [--slots 2]
 
@@ -8,9 +9,11 @@ Measured: every finished cell's wall clock (``sweep-logs/<env>/<run>.json``, whi
 process start-up and waiting for a shared Stage I, and the run's own ``final.wall_clock_s``).
 Projected, and labelled so:
 
-* the whole grid on this machine: every cell of ``experiments/table{2,3,5,6,7}.toml`` at the
-  median wall clock of the finished cells of its method (all finished cells' median where a
-  method has none yet), divided by the number of cells that run at a time;
+* a whole grid on this machine: every cell of ``experiments/table{2,3,5,6,7}.toml`` (the
+  ``cpu`` grid) or ``experiments/long.toml`` at the median wall clock of the finished cells
+  of its method and profile (for the ``cpu`` grid, all finished ``cpu`` cells' median where a
+  method has none yet; for the ``long`` grid, the ``long`` cells' median), divided by the
+  number of cells that run at a time;
 * the ``paper`` profile on one GPU. No GPU was lent to the sessions that wrote this, so
   nothing was timed on one. An update's time is bounded below by its work and by its kernel
   count: ``max(FLOPs / sustained rate, aten ops * per-op cost)``, where the FLOPs and the
@@ -49,6 +52,7 @@ from window_bench.harness.methods import get_profile  # noqa: E402
 from window_bench.harness.sweep import load_grid  # noqa: E402
 
 GRIDS = ("table2", "table3", "table5", "table6", "table7")
+LONG_GRID = "long"
 #: Assumptions of the GPU projection (one H200, PyTorch eager, float32 with TF32 matmuls).
 SUSTAINED_TFLOPS = 100.0      # small (256-row) matmuls reach a fraction of the ~495 TF32 peak
 US_PER_OP = 10.0              # eager dispatch + launch per aten op, CPU-bound on the host
@@ -67,10 +71,11 @@ class OpCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def paper_update_cost() -> dict:
+def update_cost(profile: str = "paper") -> dict:
+    """FLOPs and aten ops of one QC-FQL update at ``profile``'s network size."""
     torch.set_num_threads(1)
     demo, online = make_replays(0)
-    agent = QCFQLAgent(OBS_DIM, 7, QCFQLConfig(hidden=get_profile("paper").hidden), seed=0)
+    agent = QCFQLAgent(OBS_DIM, 7, QCFQLConfig(hidden=get_profile(profile).hidden), seed=0)
     batch = mixed_batch(demo, online, BATCH)
     agent.update(batch)                                  # first-call allocations
     with FlopCounterMode(display=False) as flops:
@@ -107,46 +112,67 @@ def main(argv=None) -> dict:
     a = ap.parse_args(argv)
     cells = finished_cells(Path(a.runs))
     wall = lambda c: c["cell_wall_s"] or c["run_wall_s"]  # noqa: E731
-    by_method: dict[str, list[float]] = {}
+    by_key: dict[tuple[str, str], list[float]] = {}
     for c in cells:
-        by_method.setdefault(c["method"], []).append(wall(c))
-    everything = [wall(c) for c in cells]
-    grid_cells, projected_s = 0, 0.0
-    for g in GRIDS:
-        for cell in load_grid(Path("experiments") / f"{g}.toml").cells:
-            grid_cells += 1
-            if cell.on is not None:          # Table 7: one M = 100 evaluation, ~1/10 of a run
-                continue
-            pool = by_method.get(cell.method) or everything
-            projected_s += statistics.median(pool) if pool else float("nan")
+        by_key.setdefault((c["method"], c["profile"]), []).append(wall(c))
+
+    def projected(grids, fallback_profile):
+        """Cells of ``grids``, training cells, and their summed median wall clock (s)."""
+        pool_all = [wall(c) for c in cells if c["profile"] == fallback_profile]
+        n, train, total = 0, 0, 0.0
+        for g in grids:
+            for cell in load_grid(Path("experiments") / f"{g}.toml").cells:
+                n += 1
+                if cell.on is not None:      # Table 7: one M = 100 evaluation, ~1/10 of a run
+                    continue
+                train += 1
+                pool = by_key.get((cell.method, cell.profile)) or pool_all
+                total += statistics.median(pool) if pool else float("nan")
+        return n, train, total
+
+    grid_cells, train_cells, projected_s = projected(GRIDS, "cpu")
     env = json.loads(Path("benchmarks/results/env_speed.json").read_text())
     env_step_s = 1.0 / env["results"]["state env steps/s, random actions"]["median"]
-    paper = get_profile("paper")
-    upd = paper_update_cost()
-    updates = paper.offline_steps + paper.budget_steps * paper.utd
-    ms_update = max(upd["ms_flop_bound"], upd["ms_launch_bound"])
-    checkpoints = paper.budget_steps // paper.checkpoint_every + 1
     eval_steps_per_episode = 0.8 * 250 + 0.2 * 600   # measured cpu runs: ~80 %, ~25 s cycles
-    eval_env_steps = checkpoints * paper.eval_episodes * eval_steps_per_episode
-    run_h = {"updates_gpu_h": updates * ms_update / 1000 / 3600,
-             "online_env_cpu_h": (paper.budget_steps + paper.warm_steps) * env_step_s / 3600,
-             "evaluation_env_cpu_h": eval_env_steps * env_step_s / GPU_HOST_CORES / 3600}
-    train_cells = sum(1 for g in GRIDS for c in load_grid(Path("experiments") / f"{g}.toml").cells
-                      if c.on is None)
+
+    def gpu_run(profile: str, final_episodes: int = 0) -> dict:
+        """One training cell of ``profile`` on one GPU (updates) and its host's CPU cores."""
+        p = get_profile(profile)
+        upd = update_cost(profile)
+        updates = p.offline_steps + p.budget_steps * p.utd
+        ms_update = max(upd["ms_flop_bound"], upd["ms_launch_bound"])
+        checkpoints = p.budget_steps // p.checkpoint_every + 1
+        eval_env_steps = (checkpoints * p.eval_episodes + final_episodes) * eval_steps_per_episode
+        run_h = {"updates_gpu_h": updates * ms_update / 1000 / 3600,
+                 "online_env_cpu_h": (p.budget_steps + p.warm_steps) * env_step_s / 3600,
+                 "evaluation_env_cpu_h": eval_env_steps * env_step_s / GPU_HOST_CORES / 3600}
+        return {"update": upd, "updates_per_run": updates, "ms_per_update": ms_update,
+                "per_run_h": {k: round(v, 2) for k, v in run_h.items()},
+                "run_h": round(sum(run_h.values()), 2)}
+
+    paper_run = gpu_run("paper")
+    long_cells = [c for c in cells if c["profile"] == LONG_GRID]
+    long_n, long_train, long_s = projected((LONG_GRID,), LONG_GRID)
+    long_run = gpu_run(LONG_GRID, final_episodes=load_grid(
+        Path("experiments") / f"{LONG_GRID}.toml").M)
     out = {"benchmark": "compute_accounting", "provenance": provenance(),
            "finished_cells": cells,
-           "median_cell_wall_s_by_method": {m: statistics.median(v) for m, v in by_method.items()},
+           "median_cell_wall_s_by_method_and_profile": {
+               f"{m} {p}": statistics.median(v) for (m, p), v in by_key.items()},
            "grid": {"cells": grid_cells, "train_cells": train_cells, "slots": a.slots,
                     "projected_wall_h": projected_s / a.slots / 3600,
-                    "finished": len(cells)},
+                    "finished": len(cells) - len(long_cells)},
            "paper_profile_gpu_projection": {
                "assumptions": {"sustained_tflops": SUSTAINED_TFLOPS, "us_per_aten_op": US_PER_OP,
                                "gpu_host_cores_for_evaluation": GPU_HOST_CORES,
                                "eval_steps_per_episode": eval_steps_per_episode},
-               "update": upd, "updates_per_run": updates, "ms_per_update": ms_update,
-               "per_run_h": {k: round(v, 2) for k, v in run_h.items()},
-               "run_h": round(sum(run_h.values()), 2),
-               "grid_h_one_gpu": round(sum(run_h.values()) * train_cells, 1)}}
+               **paper_run, "grid_h_one_gpu": round(paper_run["run_h"] * train_cells, 1)},
+           "long_grid": {
+               "cells": long_n, "finished": len(long_cells),
+               "measured_cell_h": round(sum(wall(c) for c in long_cells) / 3600, 2),
+               "projected_wall_h": (long_s / a.slots / 3600) if long_cells else None,
+               "gpu_projection": {**long_run,
+                                  "grid_h_one_gpu": round(long_run["run_h"] * long_train, 1)}}}
     atomic_write_text(a.out, json.dumps(out, indent=1))
     print(markdown(out))
     return out
@@ -154,13 +180,24 @@ def main(argv=None) -> dict:
 
 def markdown(o: dict) -> str:
     g, p = o["grid"], o["paper_profile_gpu_projection"]
-    lines = ["| method | finished cells | median cell wall clock (min) |", "|---|---|---|"]
+    lines = ["| method | profile | finished cells | median cell wall clock (min) |",
+             "|---|---|---|---|"]
     counts: dict[str, int] = {}
     for c in o["finished_cells"]:
-        counts[c["method"]] = counts.get(c["method"], 0) + 1
-    for m, s in sorted(o["median_cell_wall_s_by_method"].items()):
-        lines.append(f"| `{m}` | {counts[m]} | {s / 60:.1f} |")
+        key = f"{c['method']} {c['profile']}"
+        counts[key] = counts.get(key, 0) + 1
+    for key, s in sorted(o["median_cell_wall_s_by_method_and_profile"].items(),
+                         key=lambda kv: (kv[0].split()[1] != "cpu", kv[0])):
+        m, prof = key.split()
+        lines.append(f"| `{m}` | `{prof}` | {counts[key]} | {s / 60:.1f} |")
     u = p["update"]
+    lg = o["long_grid"]
+    lr = lg["gpu_projection"]
+    pace = ("the env steps, not the updates," if lr["per_run_h"]["online_env_cpu_h"]
+            > lr["per_run_h"]["updates_gpu_h"] else "the updates, not the env steps,")
+    mine = ("not yet projected (no finished `long` cell)" if lg["projected_wall_h"] is None
+            else f"projected **{lg['projected_wall_h']:.1f} h** on this machine with {g['slots']} "
+                 f"cells at a time")
     return "\n".join(lines) + f"""
 
 Whole grid (Tables 2-7, {g['cells']} cells of which {g['train_cells']} train): projected
@@ -175,7 +212,16 @@ launch-bound, {p['ms_per_update']} ms per update. A run is {p['updates_per_run']
 ({p['per_run_h']['online_env_cpu_h']} h) and the M = 100 evaluations spread over
 {p['assumptions']['gpu_host_cores_for_evaluation']} cores ({p['per_run_h']['evaluation_env_cpu_h']} h):
 about **{p['run_h']} h per run, {p['grid_h_one_gpu']} h for the {g['train_cells']} training
-cells** one after the other on one GPU."""
+cells** one after the other on one GPU.
+
+`long` grid (`experiments/long.toml`, {lg['cells']} cells): {lg['finished']} finished, measured
+**{lg['measured_cell_h']} cell-hours**; the whole grid {mine}. On one GPU (projected): the
+`cpu`-size update is {lr['update']['aten_ops']} aten ops, {lr['ms_per_update']} ms launch-bound;
+{lr['updates_per_run']:,} updates ({lr['per_run_h']['updates_gpu_h']} h), the env steps on one
+core ({lr['per_run_h']['online_env_cpu_h']} h) and the evaluations on
+{p['assumptions']['gpu_host_cores_for_evaluation']} cores ({lr['per_run_h']['evaluation_env_cpu_h']} h):
+about **{lr['run_h']} h per cell, {lr['grid_h_one_gpu']} h for the grid**: {pace} set its
+pace."""
 
 
 if __name__ == "__main__":
