@@ -73,6 +73,9 @@ class OpCounter(TorchDispatchMode):
 
 def update_cost(profile: str = "paper") -> dict:
     """FLOPs and aten ops of one QC-FQL update at ``profile``'s network size."""
+    import logging
+
+    logging.getLogger("torchrl").setLevel(logging.WARNING)   # its INFO lines go to stdout
     torch.set_num_threads(1)
     demo, online = make_replays(0)
     agent = QCFQLAgent(OBS_DIM, 7, QCFQLConfig(hidden=get_profile(profile).hidden), seed=0)

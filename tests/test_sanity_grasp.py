@@ -110,3 +110,22 @@ def test_entry_contact_reads_a_carried_grip_offset_as_slope_minus_one_and_a_corr
     assert ec.follows_grasp(_touched(grasp[:2], noise[:2])) == {"across": None, "vertical": None}
     assert ec.follows_grasp([{"grasp_mm": None, "first_contact": {"lateral_mm": [1, 0, 1]}}]
                             * 4)["across"] is None
+
+
+def test_budget_runs_splits_stage_iii_into_thirds_without_the_warm_start():
+    br = _script("budget_runs")
+    eps = ([{"steps": 100, "takeover_steps": 0}] * 2                 # warm start: 200 steps
+           + [{"steps": 100, "takeover_steps": 50}] * 3              # first third
+           + [{"steps": 100, "takeover_steps": 20}] * 3
+           + [{"steps": 100, "takeover_steps": 0}] * 3)
+    assert br.stage_iii_thirds(eps, warm_steps=200) == [0.5, 0.2, 0.0]
+    assert br.stage_iii_thirds(eps, warm_steps=0)[0] == 0.25   # warm episodes dilute it
+
+
+def test_budget_runs_refuses_a_missing_run_in_one_line_before_writing(tmp_path, capsys):
+    br = _script("budget_runs")
+    out = tmp_path / "o.json"
+    with pytest.raises(SystemExit) as e:
+        br.main([str(tmp_path / "nope"), "--out", str(out)])
+    assert e.value.code == 2 and not out.exists()
+    assert len(capsys.readouterr().err.strip().splitlines()[-1]) > 0
