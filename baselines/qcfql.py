@@ -47,8 +47,8 @@ from torchrl.modules import MLP
 
 from window_bench.envs.env import VACUUM_THRESHOLD
 from window_bench.data.replay import PROVENANCE_CODES
-from window_bench.installer.supervisor import (check_fine_pose, fine_pose_features,
-                                              fine_pose_inputs)
+from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, fine_pose_features,
+                                              fine_pose_inputs, grasp_features)
 from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
                                         module_state, optimizer_state, plain, with_overrides)
 
@@ -194,6 +194,13 @@ class QCFQLConfig:
     fine_pose_deg: float = 1.0
     """Angle scale of the fine rotation features (used when ``fine_pose_mm > 0``)."""
 
+    grasp_mm: float = 0.0
+    """Grasp features (not in the paper; state track): ``0`` off; else the networks also see
+    ``tanh`` of the TCP's offset from the panel's centre in the panel's face plane at this
+    scale (:func:`window_bench.installer.supervisor.grasp_features`): where the cup holds
+    the panel, which the z-scored state carries only as a millimetre difference of two
+    positions spread over tenths of a metre."""
+
     observed_keys: tuple[str, ...] | None = None
     """A diagnostic of what the privileged state gives the learner (state track, not in the
     paper): ``None``, every key of the flat state; else only these keys of
@@ -273,6 +280,10 @@ class QCFQLConfig:
                 raise ValueError(f"QCFQLConfig.{name} = {getattr(self, name)!r} is not "
                                  f"allowed: it must be true or false")
         check_fine_pose("QCFQLConfig", self.fine_pose_mm, self.fine_pose_deg)
+        g = self.grasp_mm
+        if isinstance(g, bool) or not isinstance(g, numbers.Real) or not 0 <= g <= 1000:
+            raise ValueError(f"QCFQLConfig.grasp_mm = {g!r} is not allowed: it must lie in "
+                             f"[0.0, 1000.0] (0: off)")
         if self.observed_keys is not None:
             from window_bench.envs.env import STATE_KEYS
 
@@ -482,6 +493,12 @@ class QCFQLAgent(Agent):
         self.chunk_dim = self.config.h * self.action_dim
         in_dim = obs_dim + fine_pose_inputs("QCFQLConfig", self.config.fine_pose_mm,
                                             self.obs_dim)   # what the networks see
+        if self.config.grasp_mm:
+            if obs_dim != FLAT_DIM:
+                raise ValueError(f"QCFQLConfig.grasp_mm = {self.config.grasp_mm} needs the "
+                                 f"flat state observation ({FLAT_DIM} values); obs_dim = "
+                                 f"{obs_dim}")
+            in_dim += 2
         self.num_updates = 0
 
         mean = np.zeros(obs_dim) if obs_mean is None else np.asarray(obs_mean, np.float64)
@@ -541,14 +558,18 @@ class QCFQLAgent(Agent):
         """``(obs - mean) / std`` with the fixed normaliser, clipped to ``+-OBS_CLIP``: a state
         far outside the demonstrations (a dropped panel, a violent contact) stays a large but
         bounded input instead of thousands of standard deviations. With ``fine_pose_mm`` the
-        fine pose features follow (:class:`QCFQLConfig`)."""
+        fine pose features follow, then with ``grasp_mm`` the grasp features
+        (:class:`QCFQLConfig`)."""
         z = ((obs - self.obs_mean) / self.obs_std).clamp(-OBS_CLIP, OBS_CLIP)
         if self.config.observed_keys is not None:
             z = z * self._observed_mask(z.shape[-1])
-        if not self.config.fine_pose_mm:
-            return z
-        fine = fine_pose_features(obs, self.config.fine_pose_mm, self.config.fine_pose_deg)
-        return torch.cat([z, fine.to(z.dtype)], dim=-1)
+        extra = []
+        if self.config.fine_pose_mm:
+            extra.append(fine_pose_features(obs, self.config.fine_pose_mm,
+                                            self.config.fine_pose_deg))
+        if self.config.grasp_mm:
+            extra.append(grasp_features(obs, self.config.grasp_mm))
+        return torch.cat([z, *[e.to(z.dtype) for e in extra]], dim=-1) if extra else z
 
     def _observed_mask(self, dim: int) -> torch.Tensor:
         """1 on the flat state's columns of ``config.observed_keys``, 0 elsewhere."""
@@ -842,7 +863,7 @@ class QCFQLAgent(Agent):
         structural = {"obs_dim": (sd["obs_dim"], self.obs_dim),
                       "action_dim": (sd["action_dim"], self.action_dim)}
         for name in ("h", "hidden", "student_hidden", "num_critics", "critic_layer_norm",
-                     "gelu_approximate", "fine_pose_mm"):
+                     "gelu_approximate", "fine_pose_mm", "grasp_mm"):
             structural[name] = (getattr(saved, name), getattr(self.config, name))
         for name, (theirs, ours) in structural.items():
             if theirs != ours:

@@ -595,6 +595,39 @@ def test_fine_pose_features_resolve_millimetres_near_the_seat():
         tiny(fine_pose_mm=10.0, fine_pose_deg=0.0)
 
 
+def test_grasp_features_read_where_the_cup_holds_the_panel():
+    """``grasp_mm`` adds tanh of the TCP's offset from the panel's centre in the panel's face
+    plane, computed from the flat state alone; on a real A reset (the panel grasped up to
+    5 mm off) it matches the simulator's own geometry to a micrometre."""
+    import gymnasium as gym
+
+    from window_bench.installer.supervisor import FLAT_DIM, grasp_features
+
+    env = gym.make("WindowInstall-A-v0", obs_mode="flat")
+    u = env.unwrapped
+    seen = []
+    for seed in (0, 1, 2):
+        obs, _ = env.reset(seed=seed)
+        d, sc = u.data, u.scene
+        pm = d.xmat[sc.panel_body].reshape(3, 3)
+        truth = pm.T @ (d.site_xpos[sc.tcp_site] - d.xpos[sc.panel_body])
+        f = grasp_features(torch.as_tensor(obs[None], dtype=torch.float64), 10.0)[0].numpy()
+        np.testing.assert_allclose(np.arctanh(f) * 0.01, truth[:2], atol=1e-6)
+        seen.append(truth[:2])
+    env.close()
+    assert np.ptp(np.array(seen), axis=0).max() > 1e-3      # the grips differ by millimetres
+    agent = QCFQLAgent(FLAT_DIM, A, tiny(fine_pose_mm=10.0, grasp_mm=10.0))
+    x = torch.as_tensor(obs[None])
+    assert agent.normalize(x).shape == (1, FLAT_DIM + 8)
+    restored = QCFQLAgent.from_policy_state_dict(agent.policy_state_dict())
+    np.testing.assert_array_equal(agent.act(obs, deterministic=True),
+                                  restored.act(obs, deterministic=True))
+    with pytest.raises(ValueError, match="grasp_mm = 10.0 needs the flat state"):
+        QCFQLAgent(OBS, A, tiny(grasp_mm=10.0))
+    with pytest.raises(ValueError, match=r"grasp_mm = -1.0 is not allowed: it must lie in"):
+        tiny(grasp_mm=-1.0)
+
+
 def test_state_dict_round_trip_is_bit_identical():
     cfg = tiny(h=2, hidden=(16, 16))
     agent = QCFQLAgent(OBS, A, cfg, seed=1, obs_mean=np.array([0.1, 0.2]),

@@ -91,6 +91,35 @@ def fine_pose_features(obs, mm: float, deg: float):
     return torch.tanh(torch.cat([pos, rot], dim=-1))
 
 
+def grasp_features(obs, mm: float):
+    """Where the cup holds the panel at millimetre resolution: ``tanh`` of the TCP's offset
+    from the panel's centre in the panel's face plane (panel x: across, panel y: vertical;
+    metres / millimetres), 2 values per flat observation (a torch tensor ``(..., FLAT_DIM)``).
+    The state carries it only as the difference of two z-scored positions
+    (``robot0_eef_pos`` and the seat plus ``window_pos_rel``), each spread over tenths of a
+    metre; a grip 3 mm off centre is 0.01 of their standard deviations. Computed with the
+    family's seat (every ``WindowInstall`` id seats the panel at the same pose); far from the
+    panel (before a pick) both saturate."""
+    import torch
+
+    seat = torch.as_tensor(S.SceneConfig().seated_center, dtype=obs.dtype)
+    seat_mat = torch.as_tensor(S.SEATED_PANEL_MAT, dtype=obs.dtype)
+    v = obs[..., FLAT_SLICES["window_rot_rel"]]
+    angle = v.norm(dim=-1, keepdim=True)
+    k = v / angle.clamp_min(1e-9)
+    kx, ky, kz = k.unbind(-1)
+    zero = torch.zeros_like(kx)
+    K = torch.stack([torch.stack([zero, -kz, ky], -1), torch.stack([kz, zero, -kx], -1),
+                     torch.stack([-ky, kx, zero], -1)], -2)
+    s, c = torch.sin(angle)[..., None], torch.cos(angle)[..., None]
+    rel = torch.eye(3, dtype=obs.dtype) + s * K + (1 - c) * (K @ K)   # Rodrigues
+    panel_mat = seat_mat @ rel                          # world <- panel body
+    panel_pos = seat + obs[..., FLAT_SLICES["window_pos_rel"]]
+    tcp = obs[..., FLAT_SLICES["robot0_eef_pos"]]
+    offset = ((tcp - panel_pos)[..., None, :] @ panel_mat)[..., 0, :]   # panel frame
+    return torch.tanh(offset[..., :2] / (mm / 1000.0))
+
+
 def check_fine_pose(owner: str, mm, deg) -> None:
     """The fine pose scales a learner's config may hold: ``mm`` in [0, 1000] (0: off),
     ``deg`` in (0, 90]; ``ValueError`` naming ``owner`` (e.g. ``"ACTConfig"``) otherwise."""
