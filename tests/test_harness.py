@@ -167,7 +167,22 @@ def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
 
     dest = add_run(out, tmp_path / "lb")
     assert sorted(p.name for p in dest.iterdir()) == ["checkpoints.csv", "learning_curve.png",
-                                                       "manifest.json", "results.json"]
+                                                       "manifest.json", "policies", "results.json"]
+    # the final policy comes along, listed in the copy's manifest, so tools verify it there
+    final = json.loads((dest / "results.json").read_text())["final_eval"]["policy"]
+    assert [p.name for p in (dest / "policies").iterdir()] == [final.split("/")[1]]
+    from window_bench.harness.files import verify_files
+
+    verify_files(dest, [final])
+    # a policy changed after the run wrote it is refused, and nothing is copied
+    import shutil as _sh
+
+    bad = tmp_path / "tampered"
+    _sh.copytree(out, bad)
+    (bad / final).write_bytes(b"not the run's policy")
+    with pytest.raises(Exception, match="sha256 does not match"):
+        add_run(bad, tmp_path / "lb2")
+    assert not (tmp_path / "lb2").exists()
     body = build(tmp_path / "lb", readme=tmp_path / "LB.md", snippet=None)
     assert "| WindowInstall-A-v0 | Ours (complete pipeline) (`qcfql`) | smoke | 0 |" in body
     assert body in (tmp_path / "LB.md").read_text()
