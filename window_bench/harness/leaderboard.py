@@ -86,16 +86,13 @@ def run_dest(results: dict, root: str | os.PathLike) -> Path:
     return dest
 
 
-#: The only policy file name :func:`add_run` takes from a results file.
-FINAL_POLICY = re.compile(r"^policies/step_[0-9]{7}\.safetensors$")
-
-
 def add_run(run_dir: str | os.PathLike, root: str | os.PathLike = "leaderboard/runs") -> Path:
     """Copy a finished run's raw files into ``root/<env>/<method>-<profile>-s<seed>`` (after
     :func:`check_results`), with a manifest of what was copied: the files of
     :data:`RUN_FILES` and, where the run has one, the final evaluation's policy (the acting
-    weights behind its number; its name must be ``policies/step_NNNNNNN.safetensors`` and
-    its sha256 the one the results and the run's manifest record, else ``ValueError``)."""
+    weights behind its number; :func:`check_results` holds its name to
+    ``policies/<name>.safetensors``; its sha256 must be the one the results and the run's
+    manifest record, else ``ValueError``)."""
     from window_bench.harness.files import sha256_file, verify_files
 
     run_dir = Path(run_dir)
@@ -105,10 +102,7 @@ def add_run(run_dir: str | os.PathLike, root: str | os.PathLike = "leaderboard/r
     names = [n for n in RUN_FILES if (run_dir / n).exists()]
     final = results.get("final_eval") or {}
     policy = final.get("policy")
-    if policy is not None and source is not None and (run_dir / str(policy)).is_file():
-        if not isinstance(policy, str) or not FINAL_POLICY.match(policy):
-            raise ValueError(f"{run_dir / 'results.json'}: final_eval.policy = {policy!r} is "
-                             f"not allowed: it must be policies/step_NNNNNNN.safetensors")
+    if policy is not None and source is not None and (run_dir / policy).is_file():
         verify_files(run_dir, [policy], source)
         if sha256_file(run_dir / policy) != final.get("policy_sha256"):
             raise ValueError(f"{run_dir / policy}: sha256 differs from final_eval.policy_sha256 "
