@@ -372,7 +372,7 @@ def test_one_bad_file_in_the_root_does_not_break_the_build(runs, tmp_path, capsy
     assert main(["leaderboard", "--add", str(runs.out), "--root", "lb"]) == 0
     dest = tmp_path / "lb" / "WindowInstall-A-v0" / "qcfql-offline-smoke-s0"
     assert sorted(p.name for p in dest.iterdir()) == ["checkpoints.csv", "learning_curve.png",
-                                                       "manifest.json", "results.json"]
+                                                       "manifest.json", "policies", "results.json"]
     (tmp_path / "lb" / "x").mkdir()
     (tmp_path / "lb" / "x" / "results.json").write_text('{"schema_version": 1, "final": NaN}')
     capsys.readouterr()
