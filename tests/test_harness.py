@@ -316,6 +316,50 @@ def test_methods_snippet_in_the_docs_is_current():
         "print(methods_table())' > docs/snippets/methods_table.md")
 
 
+def test_chosen_checkpoint_reads_dev_success_and_prefers_the_later_on_ties():
+    from window_bench.harness.results import chosen_checkpoint
+
+    cps = [{"env_steps": s, "success_rate": r} for s, r in ((0, .1), (10, .9), (20, .9), (30, .2))]
+    assert chosen_checkpoint(cps, "last")["env_steps"] == 30
+    assert chosen_checkpoint(cps, "best-dev")["env_steps"] == 20
+    with pytest.raises(ValueError, match="--final-checkpoint 'best'; allowed: last, best-dev"):
+        chosen_checkpoint(cps, "best")
+
+
+def test_a_best_dev_run_evaluates_the_checkpoint_best_on_the_dev_seeds(tmp_path, demos_root,
+                                                                      monkeypatch):
+    """The final evaluation runs the policy file of the checkpoint with the best dev success
+    (here made the middle one), records the choice, and the tables keep it apart."""
+    import window_bench.harness.run as run_mod
+    from window_bench.harness.evaluation import wilson_interval
+    from window_bench.harness.files import sha256_file
+    from window_bench.harness.schemas import check_results
+    from window_bench.harness.tables import _overrides
+
+    rates, real = iter([0.0, 1.0, 0.5]), run_mod.summarize_eval
+    def summarize(rows):        # checkpoint evaluations of 2 episodes: 0, 2, 1 successes
+        s, rate = real(rows), next(rates)
+        k = int(rate * s["episodes"])
+        return {**s, "success_rate": rate, "successes": k,
+                "wilson95": list(wilson_interval(k, s["episodes"]))}
+
+    monkeypatch.setattr(run_mod, "summarize_eval", summarize)
+    with pytest.raises(ValueError, match="--final-checkpoint 'first'; allowed"):
+        Run("sac", "WindowInstall-A-v0", "smoke", 0, tmp_path / "bad", demos=demos_root,
+            final_checkpoint="first")
+    assert not (tmp_path / "bad").exists()
+    out = tmp_path / "sac"
+    r = Run("sac", "WindowInstall-A-v0", "smoke", 0, out, demos=demos_root, progress=False,
+            final_episodes=2, final_checkpoint="best-dev").train()
+    fe = r["final_eval"]
+    assert (fe["checkpoint"], fe["env_steps"], fe["policy"]) == \
+        ("best-dev", 200, "policies/step_0000200.safetensors")
+    assert fe["policy_sha256"] == sha256_file(out / fe["policy"]) and fe["episodes"] == 2
+    assert r["final"]["env_steps"] == 400       # trained to the end all the same
+    check_results(out / "results.json")     # the schema knows the field
+    assert ("final_checkpoint", '"best-dev"') in _overrides(r)
+
+
 @pytest.mark.parametrize("method", ["hil-serl", "sac", "act"])
 def test_baselines_run_through_the_harness(tmp_path, demos_root, method):
     """Each external baseline trains for a few steps in the smoke profile and evaluates at

@@ -45,6 +45,8 @@ seeds = [0, 1]
      "track = 'rgb'; allowed: state, pixels"),
     ('eval_workers = 0\n[[train]]\nmethods=["qcfql"]\nenvs=["WindowInstall-A-v0"]\nseeds=[0]',
      "eval_workers = 0; allowed: an integer in 1..64"),
+    ('final_checkpoint = "best"\n[[train]]\nmethods=["sac"]\nenvs=["WindowInstall-A-v0"]\nseeds=[0]',
+     "final_checkpoint = 'best'; allowed: last, best-dev"),
 ])
 def test_bad_grid_is_one_line_error(tmp_path, text, message):
     with pytest.raises(GridError, match=None) as e:
@@ -117,6 +119,23 @@ def test_eval_workers_reach_every_cell_command(tmp_path):
     assert argv[argv.index("--eval-workers") + 1] == "1"
     assert "--eval-workers" not in cell_command(g.cells[0], _grid(tmp_path, GRID), tmp_path,
                                                 resume=True)
+
+
+def test_a_best_dev_grid_asks_for_it_and_a_last_checkpoint_result_is_not_done(tmp_path):
+    g = _grid(tmp_path, 'final_checkpoint = "best-dev"\n' + GRID)
+    c = g.cells[0]
+    argv = cell_command(c, g, tmp_path, resume=False)
+    assert argv[argv.index("--final-checkpoint") + 1] == "best-dev"
+    assert "--final-checkpoint" not in cell_command(c, _grid(tmp_path, GRID), tmp_path, False)
+    d = c.path(tmp_path)
+    d.mkdir(parents=True)
+    (d / "state.safetensors").write_bytes(b"x")
+    fe = {"episodes": 2, "seed_set": "test"}
+    (d / "results.json").write_text(json.dumps({"final_eval": fe}))    # the last checkpoint's
+    assert cell_status(c, g, tmp_path) == "partial"
+    assert cell_status(c, _grid(tmp_path, GRID), tmp_path) == "done"
+    (d / "results.json").write_text(json.dumps({"final_eval": {**fe, "checkpoint": "best-dev"}}))
+    assert cell_status(c, g, tmp_path) == "done"
 
 
 def test_pixel_track_cells_are_named_apart_and_run_with_track_pixels(tmp_path):

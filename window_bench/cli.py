@@ -205,6 +205,12 @@ def cmd_methods(args) -> int:
     return 0
 
 
+def _chosen(final_eval: dict) -> str:
+    if final_eval.get("checkpoint", "last") == "last":
+        return ""
+    return f" of the {final_eval['checkpoint']} checkpoint (env step {final_eval['env_steps']})"
+
+
 def cmd_run(args) -> int:
     from window_bench.harness.files import RunFileError, check_unlocked
 
@@ -230,6 +236,7 @@ def cmd_run(args) -> int:
                   track=args.track, encoder_weights=args.encoder_weights,
                   agent_config=_agent_config(args.preset, args.agent_config), h=args.h,
                   final_episodes=args.final_episodes, final_seed_set=args.final_seed_set,
+                  final_checkpoint=args.final_checkpoint,
                   stage1_cache=args.stage1_cache, eval_workers=args.eval_workers,
                   pixel_demos_cache=args.pixel_demos_cache)
     except (ValueError, FileExistsError) as e:
@@ -245,7 +252,7 @@ def cmd_run(args) -> int:
     t95 = f["time_to_95_sim_hours"]
     print(f"{args.method} on {args.env} ({args.profile}, seed {args.seed}): final success "
           f"{100 * f['success_rate']:.0f} % [{100 * lo:.0f}, {100 * hi:.0f}] over "
-          f"{f['episodes']} rollouts; time-to-95 {'-' if t95 is None else f'{t95:.2f} h'}; "
+          f"{f['episodes']} rollouts{_chosen(r['final_eval'])}; time-to-95 {'-' if t95 is None else f'{t95:.2f} h'}; "
           f"takeover {f['takeover_minutes']:.1f} min; {f['sim_hours']:.2f} simulated h, "
           f"{f['wall_clock_s'] / 60:.1f} min wall clock")
     print(f"wrote {Path(args.out) / 'results.json'}, checkpoints.csv, learning_curve.png")
@@ -521,6 +528,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--preset", choices=sorted(PRESETS), default=None,
                    help="start from a published agent config (its overrides; --agent-config "
                         "entries win), e.g. hilserl-own: HIL-SERL as its authors run it")
+    from window_bench.harness.results import FINAL_CHECKPOINTS
     from window_bench.harness.seeds import MAX_EPISODES, SEED_SETS
 
     r.add_argument("--h", type=arg.positive, default=None,
@@ -530,6 +538,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "100 on the test seeds); default: the last checkpoint's evaluation")
     r.add_argument("--final-seed-set", choices=sorted(SEED_SETS), default="dev",
                    help="seeds of the final evaluation: dev (tuning) or test (reported)")
+    r.add_argument("--final-checkpoint", choices=FINAL_CHECKPOINTS, default="last",
+                   help="the policy the final evaluation runs: the last checkpoint's, or the "
+                        "one with the best development-seed success (ties: the later), as a "
+                        "HIL-SERL operator picks one to evaluate")
     r.add_argument("--stage1-cache", type=arg.writable_dir("--stage1-cache"), default=None,
                    metavar="DIR",
                    help="share Stage I with runs of the same agent config, h, demos and seed "

@@ -17,6 +17,25 @@ import numpy as np
 RESULTS_SCHEMA = 1
 STEPS_PER_HOUR = 36_000            # 10 Hz
 LOSS_LOG_EVERY = 500    # learner calls averaged into one TensorBoard point (loss/...)
+#: Which checkpoint's policy the final evaluation runs: ``last`` (the tables' protocol) or
+#: ``best-dev``, the one with the highest success on the development seeds (ties: the later),
+#: as an operator picks a checkpoint to evaluate in HIL-SERL (``--eval_checkpoint_step``).
+FINAL_CHECKPOINTS = ("last", "best-dev")
+
+
+def check_final_checkpoint(choice) -> str:
+    if choice not in FINAL_CHECKPOINTS:
+        raise ValueError(f"--final-checkpoint {choice!r}; allowed: {', '.join(FINAL_CHECKPOINTS)}")
+    return choice
+
+
+def chosen_checkpoint(checkpoints: list[dict], choice: str) -> dict:
+    """The checkpoint row whose policy the final evaluation runs (see FINAL_CHECKPOINTS).
+    ``best-dev`` reads only the development-seed evaluations, never the test seeds."""
+    if check_final_checkpoint(choice) == "last":
+        return checkpoints[-1]
+    best = max(range(len(checkpoints)), key=lambda i: (checkpoints[i]["success_rate"], i))
+    return checkpoints[best]
 
 
 def checkpoints_csv(checkpoints: list[dict]) -> str:

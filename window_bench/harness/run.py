@@ -58,7 +58,8 @@ from window_bench.harness.evaluation import (FINAL_EVAL_KEYS, AgentPolicy, Evalu
 from window_bench.harness.files import STATE, RunDir, RunFileError
 from window_bench.harness.methods import agent_class, get_method, get_profile
 from window_bench.harness.results import (LOSS_LOG_EVERY, RESULTS_SCHEMA, STEPS_PER_HOUR,
-                                          Scalars, checkpoints_csv, plot_learning_curve)
+                                          Scalars, check_final_checkpoint, checkpoints_csv,
+                                          chosen_checkpoint, plot_learning_curve)
 from window_bench.harness.seeds import DEV_SEED0, MAX_SEED, eval_seeds
 from window_bench.harness.tracks import DEFAULT_TRACK, get_track
 from window_bench.installer.rollout import Rollout
@@ -93,7 +94,7 @@ class Run:
                  save_every_s: float = 60.0, acceptance_noise: dict | None = None,
                  agent_config: dict | None = None, h: int | None = None,
                  final_episodes: int | None = None, final_seed_set: str = "dev",
-                 stage1_cache: str | os.PathLike | None = None,
+                 final_checkpoint: str = "last", stage1_cache: str | os.PathLike | None = None,
                  eval_workers: int | None = None,
                  pixel_demos_cache: str | os.PathLike | None = None):
         self.method = get_method(method)
@@ -107,8 +108,8 @@ class Run:
         if final_episodes is not None:
             eval_seeds(final_seed_set, final_episodes)      # checks both before any work
         self.final_episodes, self.final_seed_set = final_episodes, final_seed_set
-        self.stage1_cache = stage1_cache
-        self.profile = get_profile(profile)
+        self.final_checkpoint = check_final_checkpoint(final_checkpoint)
+        self.stage1_cache, self.profile = stage1_cache, get_profile(profile)
         if eval_workers is not None:    # evaluation processes; results do not depend on it
             if isinstance(eval_workers, bool) or not isinstance(eval_workers, int) \
                     or not 1 <= eval_workers <= 64:
@@ -540,15 +541,14 @@ class Run:
 
     # ------------------------------------------------------------------ results
     def _final_eval(self) -> dict:
-        """The final checkpoint's policy file, its sha256, and its evaluation: M =
-        ``final_episodes`` fresh rollouts on ``final_seed_set`` (the test seeds for reported
-        runs), or else the last checkpoint's own evaluation on the development seeds."""
+        """The final policy (the last checkpoint's, or the ``final_checkpoint`` choice's), its
+        sha256, and its evaluation: M = ``final_episodes`` fresh rollouts on
+        ``final_seed_set`` (test seeds for reported runs), or else its own dev evaluation."""
         from window_bench.harness.files import sha256_file
-
-        last = self.c["checkpoints"][-1]
+        last = chosen_checkpoint(self.c["checkpoints"], self.final_checkpoint)
         path = next((self.out / "policies").glob(f"step_{last['env_steps']:07d}.*"))
         out = {"env_steps": last["env_steps"], "policy": path.relative_to(self.out).as_posix(),
-               "policy_sha256": sha256_file(path)}
+               "policy_sha256": sha256_file(path), "checkpoint": self.final_checkpoint}
         if self.final_episodes is None:
             return {"seed_set": "dev", "seeds": [DEV_SEED0, DEV_SEED0 + last["episodes"] - 1],
                     **out, **{k: last[k] for k in FINAL_EVAL_KEYS if k in last}}

@@ -122,6 +122,7 @@ def results_schema() -> dict:
     read."""
     import window_bench
     from window_bench.harness.methods import METHODS, PROFILES
+    from window_bench.harness.results import FINAL_CHECKPOINTS
     from window_bench.harness.tracks import TRACKS
 
     commit = {"type": "object", "required": ["git_commit"], "properties": {
@@ -162,7 +163,7 @@ def results_schema() -> dict:
                                      "wall_clock_s": NONNEG, "env_steps": COUNT}},
             "final_eval": _with(
                 _summary(["seed_set", "episodes", "successes", "success_rate", "wilson95"]),
-                seeds=SEED_RANGE, env_steps=COUNT,
+                seeds=SEED_RANGE, env_steps=COUNT, checkpoint={"enum": list(FINAL_CHECKPOINTS)},
                 policy={"type": "string", "pattern": POLICY_FILE},
                 policy_sha256={"type": "string", "pattern": r"^[0-9a-f]{64}$"}),
             "checkpoints": {"type": "array", "items": _with(

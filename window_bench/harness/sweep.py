@@ -7,6 +7,7 @@ seed set, and blocks of cells::
     profile = "cpu"
     M = 100                      # final-checkpoint evaluation rollouts
     seed_set = "test"            # window_bench.harness.seeds
+    # final_checkpoint = "best-dev"  # default "last" (window_bench.harness.results)
 
     [[train]]                    # methods x envs x seeds x h (h: QC-FQL methods only)
     methods = ["qcfql-no-intervention"]
@@ -66,13 +67,14 @@ from pathlib import Path
 from window_bench.harness.evaluation import atomic_write_text
 from window_bench.harness.leaderboard import override_tag
 from window_bench.harness.methods import agent_class, get_method, get_profile
+from window_bench.harness.results import FINAL_CHECKPOINTS
 from window_bench.harness.schemas import FIELD_NAME, POLICY_FILE, SAFE_NAME, read_json
 from window_bench.harness.seeds import SEED_SETS
 from window_bench.harness.tracks import DEFAULT_TRACK, TRACKS, get_track
 from window_bench.installer.operators import DEFAULT_OPERATOR, OPERATORS
 
 GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "eval_workers",
-             "track", "train", "evaluate"}
+             "final_checkpoint",  "track", "train", "evaluate"}
 TRAIN_KEYS = {"methods", "envs", "seeds", "h", "agent_config"}
 EVALUATE_KEYS = {"method", "env", "seeds", "on", "h", "agent_config"}
 MAX_GRID_BYTES = 1 << 20
@@ -140,6 +142,7 @@ class Grid:
     cells: tuple[Cell, ...]
     table: int | None = None
     eval_workers: int | None = None      # None: the profile's (1: a cell uses one core)
+    final_checkpoint: str = "last"       # or "best-dev" (harness/results.py)
 
 
 def _fail(path, msg: str):
@@ -202,6 +205,10 @@ def load_grid(path: str | os.PathLike) -> Grid:
                                      not isinstance(eval_workers, int) or
                                      not 1 <= eval_workers <= 64):
         _fail(path, f"eval_workers = {eval_workers!r}; allowed: an integer in 1..64")
+    final_checkpoint = doc.get("final_checkpoint", "last")
+    if final_checkpoint not in FINAL_CHECKPOINTS:
+        _fail(path, f"final_checkpoint = {final_checkpoint!r}; allowed: "
+                    f"{', '.join(FINAL_CHECKPOINTS)}")
 
     def env_ok(block):
         def check(e):
@@ -322,7 +329,8 @@ def load_grid(path: str | os.PathLike) -> Grid:
         run = c.name.split("/", 1)[1]
         if not SAFE_NAME.match(run):
             _fail(path, f"cell name {run!r} is not one safe directory name")
-    return Grid(name, path, profile, M, seed_set, operator, unique, table, eval_workers)
+    return Grid(name, path, profile, M, seed_set, operator, unique, table, eval_workers,
+                final_checkpoint)
 
 
 # ---------------------------------------------------------------------------- cell state
@@ -356,11 +364,13 @@ def cell_status(cell: Cell, grid: Grid, out: Path) -> str:
     r = _read_json(p / "results.json")
     if r is not None:
         fe = _obj(r.get("final_eval"))
-        if (fe.get("episodes"), fe.get("seed_set")) == (grid.M, grid.seed_set):
+        if (fe.get("episodes"), fe.get("seed_set"), fe.get("checkpoint", "last")) == \
+                (grid.M, grid.seed_set, grid.final_checkpoint):
             return "done"
         if not _has_state(p):
             return (f"conflict: {p} holds a finished run without a final M = {grid.M} "
-                    f"evaluation on {grid.seed_set!r} seeds; move it away to rerun it")
+                    f"evaluation on {grid.seed_set!r} seeds of the {grid.final_checkpoint!r} "
+                    f"checkpoint; move it away to rerun it")
     return "partial" if _has_state(p) else "new"
 
 
@@ -533,6 +543,8 @@ def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool,
                     "--demos", str(demos_dir(cell, grid, out)),
                     "--final-episodes", str(grid.M), "--final-seed-set", grid.seed_set]
     argv += _eval_workers(grid)
+    if grid.final_checkpoint != "last":
+        argv += ["--final-checkpoint", grid.final_checkpoint]
     if stage1_cache:
         argv += ["--stage1-cache", str(out / "stage1_cache")]
     if cell.h is not None:

@@ -135,6 +135,20 @@ def check_fine_pose(owner: str, mm, deg) -> None:
                          f"(0.0, 90.0]")
 
 
+#: Learner config fields whose features read the flat state observation (nonzero: on).
+STATE_ONLY_FIELDS = ("fine_pose_mm", "grasp_mm")
+
+
+def check_flat_state_fields(config, observation: str) -> None:
+    """``ValueError`` (one line) when ``config`` turns on a feature of
+    :data:`STATE_ONLY_FIELDS` for a learner that observes ``observation``, not the state."""
+    for field in STATE_ONLY_FIELDS:
+        value = getattr(config, field, 0)
+        if value:
+            raise ValueError(f"{type(config).__name__}.{field} = {value!r} reads the flat state "
+                             f"observation; on {observation} it must be 0 (off)")
+
+
 def fine_pose_inputs(owner: str, mm: float, obs_dim: int) -> int:
     """How many values the fine pose features add to an ``obs_dim`` observation (6, or 0
     when off); ``ValueError`` when they are on and the observation is not the flat state."""

@@ -91,7 +91,13 @@ class PixelAgent(Agent):
 
     @classmethod
     def make_config(cls, h: int, profile, overrides: dict):
-        return cls.inner_class().make_config(h, profile, overrides)
+        """The inner learner's config; features that read the flat state are refused here,
+        before a run writes any file."""
+        from window_bench.installer.supervisor import check_flat_state_fields
+
+        config = cls.inner_class().make_config(h, profile, overrides)
+        check_flat_state_fields(config, "the pixel track (cameras and proprioception)")
+        return config
 
     @classmethod
     def create(cls, spec: AgentSpec) -> "PixelAgent":
