@@ -48,7 +48,8 @@ from torchrl.modules import MLP
 from window_bench.envs.env import VACUUM_THRESHOLD
 from window_bench.data.replay import PROVENANCE_CODES
 from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, fine_pose_features,
-                                              fine_pose_inputs, grasp_features)
+                                              fine_pose_inputs, grasp_features,
+                                              tool_features)
 from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
                                         module_state, optimizer_state, plain, with_overrides)
 
@@ -201,6 +202,13 @@ class QCFQLConfig:
     the panel, which the z-scored state carries only as a millimetre difference of two
     positions spread over tenths of a metre."""
 
+    tool_in_panel_m: float = 0.0
+    """Tool features (not in the paper; state track): ``0`` off; else the networks also see
+    ``tanh`` of the TCP's offset from the panel's centre in the panel's frame over this many
+    metres (:func:`window_bench.installer.supervisor.tool_features`, 3 values): where the
+    tool is relative to the panel, which with ``observed_keys`` leaving out the absolute
+    positions is all a policy has to steer the pick by."""
+
     observed_keys: tuple[str, ...] | None = None
     """A diagnostic of what the privileged state gives the learner (state track, not in the
     paper): ``None``, every key of the flat state; else only these keys of
@@ -284,6 +292,10 @@ class QCFQLConfig:
         if isinstance(g, bool) or not isinstance(g, numbers.Real) or not 0 <= g <= 1000:
             raise ValueError(f"QCFQLConfig.grasp_mm = {g!r} is not allowed: it must lie in "
                              f"[0.0, 1000.0] (0: off)")
+        t = self.tool_in_panel_m
+        if isinstance(t, bool) or not isinstance(t, numbers.Real) or not 0 <= t <= 10:
+            raise ValueError(f"QCFQLConfig.tool_in_panel_m = {t!r} is not allowed: it must lie "
+                             f"in [0.0, 10.0] (0: off)")
         if self.observed_keys is not None:
             from window_bench.envs.env import STATE_KEYS
 
@@ -493,12 +505,13 @@ class QCFQLAgent(Agent):
         self.chunk_dim = self.config.h * self.action_dim
         in_dim = obs_dim + fine_pose_inputs("QCFQLConfig", self.config.fine_pose_mm,
                                             self.obs_dim)   # what the networks see
-        if self.config.grasp_mm:
-            if obs_dim != FLAT_DIM:
-                raise ValueError(f"QCFQLConfig.grasp_mm = {self.config.grasp_mm} needs the "
-                                 f"flat state observation ({FLAT_DIM} values); obs_dim = "
-                                 f"{obs_dim}")
-            in_dim += 2
+        for name, n in (("grasp_mm", 2), ("tool_in_panel_m", 3)):
+            if getattr(self.config, name):
+                if obs_dim != FLAT_DIM:
+                    raise ValueError(f"QCFQLConfig.{name} = {getattr(self.config, name)} needs "
+                                     f"the flat state observation ({FLAT_DIM} values); "
+                                     f"obs_dim = {obs_dim}")
+                in_dim += n
         self.num_updates = 0
 
         mean = np.zeros(obs_dim) if obs_mean is None else np.asarray(obs_mean, np.float64)
@@ -558,7 +571,8 @@ class QCFQLAgent(Agent):
         """``(obs - mean) / std`` with the fixed normaliser, clipped to ``+-OBS_CLIP``: a state
         far outside the demonstrations (a dropped panel, a violent contact) stays a large but
         bounded input instead of thousands of standard deviations. With ``fine_pose_mm`` the
-        fine pose features follow, then with ``grasp_mm`` the grasp features
+        fine pose features follow, then with ``grasp_mm`` the grasp features, then with
+        ``tool_in_panel_m`` the tool features
         (:class:`QCFQLConfig`)."""
         z = ((obs - self.obs_mean) / self.obs_std).clamp(-OBS_CLIP, OBS_CLIP)
         if self.config.observed_keys is not None:
@@ -569,6 +583,8 @@ class QCFQLAgent(Agent):
                                             self.config.fine_pose_deg))
         if self.config.grasp_mm:
             extra.append(grasp_features(obs, self.config.grasp_mm))
+        if self.config.tool_in_panel_m:
+            extra.append(tool_features(obs, self.config.tool_in_panel_m))
         return torch.cat([z, *[e.to(z.dtype) for e in extra]], dim=-1) if extra else z
 
     def _observed_mask(self, dim: int) -> torch.Tensor:
@@ -863,7 +879,7 @@ class QCFQLAgent(Agent):
         structural = {"obs_dim": (sd["obs_dim"], self.obs_dim),
                       "action_dim": (sd["action_dim"], self.action_dim)}
         for name in ("h", "hidden", "student_hidden", "num_critics", "critic_layer_norm",
-                     "gelu_approximate", "fine_pose_mm", "grasp_mm"):
+                     "gelu_approximate", "fine_pose_mm", "grasp_mm", "tool_in_panel_m"):
             structural[name] = (getattr(saved, name), getattr(self.config, name))
         for name, (theirs, ours) in structural.items():
             if theirs != ours:

@@ -628,6 +628,40 @@ def test_grasp_features_read_where_the_cup_holds_the_panel():
         tiny(grasp_mm=-1.0)
 
 
+def test_tool_features_read_the_tool_in_the_panel_frame_before_and_after_the_pick():
+    """``tool_in_panel_m`` adds tanh of the TCP's 3-D offset from the panel's centre in the
+    panel's frame; on real B resets (panel flat on the ground, tool far above it) and A resets
+    (panel in the cup) it matches the simulator's geometry, and a policy saved with it acts
+    the same after a restore."""
+    import gymnasium as gym
+
+    from window_bench.installer.supervisor import FLAT_DIM, tool_features
+
+    for env_id, far in (("WindowInstall-B-v0", True), ("WindowInstall-A-v0", False)):
+        env = gym.make(env_id, obs_mode="flat")
+        u = env.unwrapped
+        for seed in (0, 1):
+            obs, _ = env.reset(seed=seed)
+            d, sc = u.data, u.scene
+            pm = d.xmat[sc.panel_body].reshape(3, 3)
+            truth = pm.T @ (d.site_xpos[sc.tcp_site] - d.xpos[sc.panel_body])
+            f = tool_features(torch.as_tensor(obs[None], dtype=torch.float64), 0.5)[0].numpy()
+            np.testing.assert_allclose(np.arctanh(f) * 0.5, truth, atol=1e-6)
+            assert (np.linalg.norm(truth) > 0.05) == far     # B: before the pick
+        env.close()
+    agent = QCFQLAgent(FLAT_DIM, A, tiny(tool_in_panel_m=0.5, observed_keys=(
+        "robot0_joint_vel", "robot0_vacuum", "window_pos_rel", "window_rot_rel")))
+    x = torch.as_tensor(obs[None])
+    assert agent.normalize(x).shape == (1, FLAT_DIM + 3)
+    restored = QCFQLAgent.from_policy_state_dict(agent.policy_state_dict())
+    np.testing.assert_array_equal(agent.act(obs, deterministic=True),
+                                  restored.act(obs, deterministic=True))
+    with pytest.raises(ValueError, match="tool_in_panel_m = 0.5 needs the flat state"):
+        QCFQLAgent(OBS, A, tiny(tool_in_panel_m=0.5))
+    with pytest.raises(ValueError, match=r"tool_in_panel_m = 11 is not allowed: it must lie"):
+        tiny(tool_in_panel_m=11)
+
+
 def test_state_dict_round_trip_is_bit_identical():
     cfg = tiny(h=2, hidden=(16, 16))
     agent = QCFQLAgent(OBS, A, cfg, seed=1, obs_mean=np.array([0.1, 0.2]),

@@ -91,15 +91,13 @@ def fine_pose_features(obs, mm: float, deg: float):
     return torch.tanh(torch.cat([pos, rot], dim=-1))
 
 
-def grasp_features(obs, mm: float):
-    """Where the cup holds the panel at millimetre resolution: ``tanh`` of the TCP's offset
-    from the panel's centre in the panel's face plane (panel x: across, panel y: vertical;
-    metres / millimetres), 2 values per flat observation (a torch tensor ``(..., FLAT_DIM)``).
-    The state carries it only as the difference of two z-scored positions
-    (``robot0_eef_pos`` and the seat plus ``window_pos_rel``), each spread over tenths of a
-    metre; a grip 3 mm off centre is 0.01 of their standard deviations. Computed with the
-    family's seat (every ``WindowInstall`` id seats the panel at the same pose); far from the
-    panel (before a pick) both saturate."""
+def tool_in_panel(obs):
+    """The TCP's offset from the panel's centre in the panel's frame (x: across, y:
+    vertical, z: the face normal; metres), ``(..., 3)`` per flat observation (a torch tensor
+    ``(..., FLAT_DIM)``), computed with the family's seat (every ``WindowInstall`` id seats
+    the panel at the same pose). The state carries it only as the difference of two z-scored
+    positions (``robot0_eef_pos`` and the seat plus ``window_pos_rel``), each spread over
+    tenths of a metre; a grip 3 mm off centre is 0.01 of their standard deviations."""
     import torch
 
     seat = torch.as_tensor(S.SceneConfig().seated_center, dtype=obs.dtype)
@@ -116,8 +114,26 @@ def grasp_features(obs, mm: float):
     panel_mat = seat_mat @ rel                          # world <- panel body
     panel_pos = seat + obs[..., FLAT_SLICES["window_pos_rel"]]
     tcp = obs[..., FLAT_SLICES["robot0_eef_pos"]]
-    offset = ((tcp - panel_pos)[..., None, :] @ panel_mat)[..., 0, :]   # panel frame
-    return torch.tanh(offset[..., :2] / (mm / 1000.0))
+    return ((tcp - panel_pos)[..., None, :] @ panel_mat)[..., 0, :]
+
+
+def grasp_features(obs, mm: float):
+    """Where the cup holds the panel at millimetre resolution: ``tanh`` of
+    :func:`tool_in_panel` in the face plane (across, vertical) over ``mm``, 2 values per flat
+    observation; far from the panel (before a pick) both saturate."""
+    import torch
+
+    return torch.tanh(tool_in_panel(obs)[..., :2] / (mm / 1000.0))
+
+
+def tool_features(obs, m: float):
+    """Where the tool is relative to the panel at the scale of the reach: ``tanh`` of
+    :func:`tool_in_panel` over ``m`` metres, 3 values per flat observation. With the
+    absolute positions left out of the input (``observed_keys``), the pick is steered by these
+    and the insertion by the panel's pose relative to the seat."""
+    import torch
+
+    return torch.tanh(tool_in_panel(obs) / m)
 
 
 def check_fine_pose(owner: str, mm, deg) -> None:
@@ -136,7 +152,7 @@ def check_fine_pose(owner: str, mm, deg) -> None:
 
 
 #: Learner config fields whose features read the flat state observation (nonzero: on).
-STATE_ONLY_FIELDS = ("fine_pose_mm", "grasp_mm")
+STATE_ONLY_FIELDS = ("fine_pose_mm", "grasp_mm", "tool_in_panel_m")
 
 
 def check_flat_state_fields(config, observation: str) -> None:
