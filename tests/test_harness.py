@@ -48,6 +48,15 @@ def test_wilson_matches_an_independent_inversion(k, n):
     assert lo == pytest.approx(ref[0], abs=1e-9) and hi == pytest.approx(ref[1], abs=1e-9)
 
 
+@pytest.mark.parametrize("n", [20, 100, 7])
+def test_wilson_holds_the_rate_at_the_ends_exactly(n):
+    """100 / 100 once gave an upper bound of 1 - 1e-16, which the results check refused."""
+    assert wilson_interval(n, n)[1] == 1.0 and wilson_interval(0, n)[0] == 0.0
+    for k in range(n + 1):
+        lo, hi = wilson_interval(k, n)
+        assert lo <= k / n <= hi
+
+
 def test_time_to_95_needs_three_consecutive_checkpoints():
     steps = [0, 3000, 6000, 9000, 12000, 15000, 18000]
     assert time_to_threshold([0.5, 0.96, 0.97, 0.90, 0.95, 0.99, 1.0], steps) == 12000

@@ -52,7 +52,8 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     denom = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / denom
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # The interval holds p; rounding must not put 100/100 outside it (1 - 1e-16).
+    return min(max(0.0, centre - half), p), max(min(1.0, centre + half), p)
 
 
 def git_commit() -> str:
