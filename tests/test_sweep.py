@@ -122,18 +122,24 @@ def test_eval_workers_reach_every_cell_command(tmp_path):
 
 
 def test_a_best_dev_grid_asks_for_it_and_a_last_checkpoint_result_is_not_done(tmp_path):
+    from window_bench.harness.leaderboard import run_dest
+
     g = _grid(tmp_path, 'final_checkpoint = "best-dev"\n' + GRID)
-    c = g.cells[0]
+    c, last = g.cells[0], _grid(tmp_path, GRID).cells[0]
     argv = cell_command(c, g, tmp_path, resume=False)
     assert argv[argv.index("--final-checkpoint") + 1] == "best-dev"
-    assert "--final-checkpoint" not in cell_command(c, _grid(tmp_path, GRID), tmp_path, False)
+    assert "--final-checkpoint" not in cell_command(last, _grid(tmp_path, GRID), tmp_path, False)
+    # named apart from the last-checkpoint cell, as the leaderboard names the run
+    assert c.name == "WindowInstall-A-v0/qcfql-offline-best-dev-smoke-s0" != last.name
+    results = {"env_id": c.env_id, "method": {"name": c.method}, "profile": {"name": c.profile},
+               "seed": c.seed, "track": "state", "final_eval": {"checkpoint": "best-dev"}}
+    assert run_dest(results, tmp_path) == c.path(tmp_path)
     d = c.path(tmp_path)
     d.mkdir(parents=True)
     (d / "state.safetensors").write_bytes(b"x")
     fe = {"episodes": 2, "seed_set": "test"}
     (d / "results.json").write_text(json.dumps({"final_eval": fe}))    # the last checkpoint's
     assert cell_status(c, g, tmp_path) == "partial"
-    assert cell_status(c, _grid(tmp_path, GRID), tmp_path) == "done"
     (d / "results.json").write_text(json.dumps({"final_eval": {**fe, "checkpoint": "best-dev"}}))
     assert cell_status(c, g, tmp_path) == "done"
 

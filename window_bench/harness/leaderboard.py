@@ -65,8 +65,8 @@ def _operator(results: dict) -> str | None:
 
 
 def run_dest(results: dict, root: str | os.PathLike) -> Path:
-    """``root/<env>/<method>[-h<h>]<overrides>[-<track>][-readout<sha>][-<operator>]-<profile>
-    -s<seed>``, checked to stay inside ``root``: a run with another chunk horizon, track,
+    """``root/<env>/<method>[-h<h>]<overrides>[-<track>][-readout<sha>][-<operator>]
+    [-best-dev]-<profile>-s<seed>``, checked to stay inside ``root``: a run with another chunk horizon, track,
     pose read-out or operator profile never lands on the default run of the same method and seed (``-h<h>`` as
     ``bench sweep`` names its Tables 5/6 cells)."""
     method = results["method"]["name"]
@@ -79,6 +79,8 @@ def run_dest(results: dict, root: str | os.PathLike) -> Path:
         tag += f"-readout{_pose_readout(results)[:8]}"
     if operator is not None:
         tag += f"-{operator}"
+    choice = (results.get("final_eval") or {}).get("checkpoint", "last")
+    tag += "" if choice == "last" else f"-{choice}"     # --final-checkpoint best-dev
     name = f"{method}{tag}-{results['profile']['name']}-s{results['seed']}"
     dest = Path(root) / results["env_id"] / name
     if not SAFE_NAME.match(name) or not dest.resolve().is_relative_to(Path(root).resolve()):

@@ -100,6 +100,7 @@ class Cell:
     on: str | None = None
     track: str = DEFAULT_TRACK                 # observation track (harness/tracks.py)
     operator: str = DEFAULT_OPERATOR           # the grid's operator profile
+    final_checkpoint: str = "last"             # the grid's (harness/results.py)
 
     @property
     def train_cell(self) -> "Cell":
@@ -112,6 +113,7 @@ class Cell:
         tag += override_tag(self.agent_config)
         tag += "" if self.track == DEFAULT_TRACK else f"-{self.track}"   # as bench leaderboard does
         tag += "" if self.operator == DEFAULT_OPERATOR else f"-{self.operator}"
+        tag += "" if self.final_checkpoint == "last" else f"-{self.final_checkpoint}"
         return f"{self.on or self.env_id}/{self.method}{tag}-{self.profile}-s{self.seed}"
 
     def path(self, out: Path) -> Path:
@@ -304,7 +306,8 @@ def load_grid(path: str | os.PathLike) -> Grid:
         cfg = overrides(block, spec, methods, hs)
         for m, h, e, s in itertools.product(methods, hs, envs, seeds):
             cells.append(Cell(m, e, s, profile, h if h != get_method(m).h else None, cfg,
-                              track=track, operator=operator))
+                              track=track, operator=operator,
+                              final_checkpoint=final_checkpoint))
     for i, spec in enumerate(doc.get("evaluate", [])):
         block = f"evaluate[{i}]"
         if set(spec) - EVALUATE_KEYS:
@@ -321,7 +324,8 @@ def load_grid(path: str | os.PathLike) -> Grid:
         for h, s, target in itertools.product(hs, seeds, on):
             cells.append(Cell(method, spec["env"], s, profile,
                               h if h != get_method(method).h else None, cfg, on=target,
-                              track=track, operator=operator))
+                              track=track, operator=operator,
+                              final_checkpoint=final_checkpoint))
     if not cells:
         _fail(path, "declares no cells (add a [[train]] or [[evaluate]] block)")
     unique = tuple(dict.fromkeys(cells))
