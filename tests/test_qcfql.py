@@ -595,35 +595,47 @@ def test_fine_pose_features_resolve_millimetres_near_the_seat():
         tiny(fine_pose_mm=10.0, fine_pose_deg=0.0)
 
 
+def _tool_in_panel_truth(env):
+    """The TCP's offset from the panel's centre in the panel frame, from the simulator."""
+    u = env.unwrapped
+    d, sc = u.data, u.scene
+    return d.xmat[sc.panel_body].reshape(3, 3).T @ (d.site_xpos[sc.tcp_site] -
+                                                    d.xpos[sc.panel_body])
+
+
+def _features_extend_the_input_and_survive_a_restore(obs, n_extra, field, value, **cfg):
+    """An agent with ``field = value`` sees ``n_extra`` more inputs, acts the same after a
+    policy save/restore, and the option is refused off the flat state and out of range."""
+    from window_bench.installer.supervisor import FLAT_DIM
+
+    agent = QCFQLAgent(FLAT_DIM, A, tiny(**{field: value}, **cfg))
+    assert agent.normalize(torch.as_tensor(obs[None])).shape == (1, FLAT_DIM + n_extra)
+    restored = QCFQLAgent.from_policy_state_dict(agent.policy_state_dict())
+    np.testing.assert_array_equal(agent.act(obs, deterministic=True),
+                                  restored.act(obs, deterministic=True))
+    with pytest.raises(ValueError, match=f"{field} = {value} needs the flat state"):
+        QCFQLAgent(OBS, A, tiny(**{field: value}))
+
+
 def test_grasp_features_read_where_the_cup_holds_the_panel():
     """``grasp_mm`` adds tanh of the TCP's offset from the panel's centre in the panel's face
     plane, computed from the flat state alone; on a real A reset (the panel grasped up to
     5 mm off) it matches the simulator's own geometry to a micrometre."""
     import gymnasium as gym
 
-    from window_bench.installer.supervisor import FLAT_DIM, grasp_features
+    from window_bench.installer.supervisor import grasp_features
 
     env = gym.make("WindowInstall-A-v0", obs_mode="flat")
-    u = env.unwrapped
     seen = []
     for seed in (0, 1, 2):
         obs, _ = env.reset(seed=seed)
-        d, sc = u.data, u.scene
-        pm = d.xmat[sc.panel_body].reshape(3, 3)
-        truth = pm.T @ (d.site_xpos[sc.tcp_site] - d.xpos[sc.panel_body])
+        truth = _tool_in_panel_truth(env)
         f = grasp_features(torch.as_tensor(obs[None], dtype=torch.float64), 10.0)[0].numpy()
         np.testing.assert_allclose(np.arctanh(f) * 0.01, truth[:2], atol=1e-6)
         seen.append(truth[:2])
     env.close()
     assert np.ptp(np.array(seen), axis=0).max() > 1e-3      # the grips differ by millimetres
-    agent = QCFQLAgent(FLAT_DIM, A, tiny(fine_pose_mm=10.0, grasp_mm=10.0))
-    x = torch.as_tensor(obs[None])
-    assert agent.normalize(x).shape == (1, FLAT_DIM + 8)
-    restored = QCFQLAgent.from_policy_state_dict(agent.policy_state_dict())
-    np.testing.assert_array_equal(agent.act(obs, deterministic=True),
-                                  restored.act(obs, deterministic=True))
-    with pytest.raises(ValueError, match="grasp_mm = 10.0 needs the flat state"):
-        QCFQLAgent(OBS, A, tiny(grasp_mm=10.0))
+    _features_extend_the_input_and_survive_a_restore(obs, 8, "grasp_mm", 10.0, fine_pose_mm=10.0)
     with pytest.raises(ValueError, match=r"grasp_mm = -1.0 is not allowed: it must lie in"):
         tiny(grasp_mm=-1.0)
 
@@ -635,29 +647,20 @@ def test_tool_features_read_the_tool_in_the_panel_frame_before_and_after_the_pic
     the same after a restore."""
     import gymnasium as gym
 
-    from window_bench.installer.supervisor import FLAT_DIM, tool_features
+    from window_bench.installer.supervisor import tool_features
 
     for env_id, far in (("WindowInstall-B-v0", True), ("WindowInstall-A-v0", False)):
         env = gym.make(env_id, obs_mode="flat")
-        u = env.unwrapped
         for seed in (0, 1):
             obs, _ = env.reset(seed=seed)
-            d, sc = u.data, u.scene
-            pm = d.xmat[sc.panel_body].reshape(3, 3)
-            truth = pm.T @ (d.site_xpos[sc.tcp_site] - d.xpos[sc.panel_body])
+            truth = _tool_in_panel_truth(env)
             f = tool_features(torch.as_tensor(obs[None], dtype=torch.float64), 0.5)[0].numpy()
             np.testing.assert_allclose(np.arctanh(f) * 0.5, truth, atol=1e-6)
             assert (np.linalg.norm(truth) > 0.05) == far     # B: before the pick
         env.close()
-    agent = QCFQLAgent(FLAT_DIM, A, tiny(tool_in_panel_m=0.5, observed_keys=(
-        "robot0_joint_vel", "robot0_vacuum", "window_pos_rel", "window_rot_rel")))
-    x = torch.as_tensor(obs[None])
-    assert agent.normalize(x).shape == (1, FLAT_DIM + 3)
-    restored = QCFQLAgent.from_policy_state_dict(agent.policy_state_dict())
-    np.testing.assert_array_equal(agent.act(obs, deterministic=True),
-                                  restored.act(obs, deterministic=True))
-    with pytest.raises(ValueError, match="tool_in_panel_m = 0.5 needs the flat state"):
-        QCFQLAgent(OBS, A, tiny(tool_in_panel_m=0.5))
+    _features_extend_the_input_and_survive_a_restore(
+        obs, 3, "tool_in_panel_m", 0.5,
+        observed_keys=("robot0_joint_vel", "robot0_vacuum", "window_pos_rel", "window_rot_rel"))
     with pytest.raises(ValueError, match=r"tool_in_panel_m = 11 is not allowed: it must lie"):
         tiny(tool_in_panel_m=11)
 

@@ -252,7 +252,8 @@ def cmd_run(args) -> int:
     t95 = f["time_to_95_sim_hours"]
     print(f"{args.method} on {args.env} ({args.profile}, seed {args.seed}): final success "
           f"{100 * f['success_rate']:.0f} % [{100 * lo:.0f}, {100 * hi:.0f}] over "
-          f"{f['episodes']} rollouts{_chosen(r['final_eval'])}; time-to-95 {'-' if t95 is None else f'{t95:.2f} h'}; "
+          f"{f['episodes']} rollouts{_chosen(r['final_eval'])}; "
+          f"time-to-95 {'-' if t95 is None else f'{t95:.2f} h'}; "
           f"takeover {f['takeover_minutes']:.1f} min; {f['sim_hours']:.2f} simulated h, "
           f"{f['wall_clock_s'] / 60:.1f} min wall clock")
     print(f"wrote {Path(args.out) / 'results.json'}, checkpoints.csv, learning_curve.png")

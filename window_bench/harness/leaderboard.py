@@ -66,9 +66,9 @@ def _operator(results: dict) -> str | None:
 
 def run_dest(results: dict, root: str | os.PathLike) -> Path:
     """``root/<env>/<method>[-h<h>]<overrides>[-<track>][-readout<sha>][-<operator>]
-    [-best-dev]-<profile>-s<seed>``, checked to stay inside ``root``: a run with another chunk horizon, track,
-    pose read-out or operator profile never lands on the default run of the same method and seed (``-h<h>`` as
-    ``bench sweep`` names its Tables 5/6 cells)."""
+    [-best-dev]-<profile>-s<seed>``, checked to stay inside ``root``: a run with another
+    chunk horizon, track, pose read-out, operator profile or final checkpoint never lands on
+    the default run of the same method and seed (named as ``bench sweep`` names its cells)."""
     method = results["method"]["name"]
     h, operator = _own_h(results), _operator(results)
     tag = "" if h is None else f"-h{h}"

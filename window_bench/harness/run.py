@@ -545,13 +545,13 @@ class Run:
         sha256, and its evaluation: M = ``final_episodes`` fresh rollouts on
         ``final_seed_set`` (test seeds for reported runs), or else its own dev evaluation."""
         from window_bench.harness.files import sha256_file
-        last = chosen_checkpoint(self.c["checkpoints"], self.final_checkpoint)
-        path = next((self.out / "policies").glob(f"step_{last['env_steps']:07d}.*"))
-        out = {"env_steps": last["env_steps"], "policy": path.relative_to(self.out).as_posix(),
+        cp = chosen_checkpoint(self.c["checkpoints"], self.final_checkpoint)
+        path = next((self.out / "policies").glob(f"step_{cp['env_steps']:07d}.*"))
+        out = {"env_steps": cp["env_steps"], "policy": path.relative_to(self.out).as_posix(),
                "policy_sha256": sha256_file(path), "checkpoint": self.final_checkpoint}
         if self.final_episodes is None:
-            return {"seed_set": "dev", "seeds": [DEV_SEED0, DEV_SEED0 + last["episodes"] - 1],
-                    **out, **{k: last[k] for k in FINAL_EVAL_KEYS if k in last}}
+            return {"seed_set": "dev", "seeds": [DEV_SEED0, DEV_SEED0 + cp["episodes"] - 1],
+                    **out, **{k: cp[k] for k in FINAL_EVAL_KEYS if k in cp}}
         r = evaluate_policy_file(path, self.final_episodes, self.profile.eval_workers,
                                  seed_set=self.final_seed_set,
                                  max_steps=self.profile.max_episode_steps,

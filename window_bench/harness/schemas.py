@@ -218,8 +218,8 @@ def check_counts(path, where: str, s: dict, seeds_key: str | None = None) -> Non
             fail(f"success_rate {rate} is not successes / episodes = {k}/{n}")
     if s.get("wilson95") is not None:
         lo, hi = s["wilson95"]
-        if not lo - RATE_TOLERANCE <= rate <= hi + RATE_TOLERANCE:   # files written
-            # before 100/100 had an upper bound of exactly 1 hold 1 - 1e-16
+        # tolerant of rounding: files written before the fix hold 100/100's bound as 1 - 1e-16
+        if not lo - RATE_TOLERANCE <= rate <= hi + RATE_TOLERANCE:
             fail(f"success_rate {rate} lies outside its wilson95 [{lo}, {hi}]")
     seeds = s.get(seeds_key) if seeds_key else None
     if seeds is not None and n is not None and "seed_set" in s:

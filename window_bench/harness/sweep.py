@@ -74,7 +74,7 @@ from window_bench.harness.tracks import DEFAULT_TRACK, TRACKS, get_track
 from window_bench.installer.operators import DEFAULT_OPERATOR, OPERATORS
 
 GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "eval_workers",
-             "final_checkpoint",  "track", "train", "evaluate"}
+             "final_checkpoint", "track", "train", "evaluate"}
 TRAIN_KEYS = {"methods", "envs", "seeds", "h", "agent_config"}
 EVALUATE_KEYS = {"method", "env", "seeds", "on", "h", "agent_config"}
 MAX_GRID_BYTES = 1 << 20
@@ -144,7 +144,6 @@ class Grid:
     cells: tuple[Cell, ...]
     table: int | None = None
     eval_workers: int | None = None      # None: the profile's (1: a cell uses one core)
-    final_checkpoint: str = "last"       # or "best-dev" (harness/results.py)
 
 
 def _fail(path, msg: str):
@@ -333,8 +332,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
         run = c.name.split("/", 1)[1]
         if not SAFE_NAME.match(run):
             _fail(path, f"cell name {run!r} is not one safe directory name")
-    return Grid(name, path, profile, M, seed_set, operator, unique, table, eval_workers,
-                final_checkpoint)
+    return Grid(name, path, profile, M, seed_set, operator, unique, table, eval_workers)
 
 
 # ---------------------------------------------------------------------------- cell state
@@ -369,11 +367,11 @@ def cell_status(cell: Cell, grid: Grid, out: Path) -> str:
     if r is not None:
         fe = _obj(r.get("final_eval"))
         if (fe.get("episodes"), fe.get("seed_set"), fe.get("checkpoint", "last")) == \
-                (grid.M, grid.seed_set, grid.final_checkpoint):
+                (grid.M, grid.seed_set, cell.final_checkpoint):
             return "done"
         if not _has_state(p):
             return (f"conflict: {p} holds a finished run without a final M = {grid.M} "
-                    f"evaluation on {grid.seed_set!r} seeds of the {grid.final_checkpoint!r} "
+                    f"evaluation on {grid.seed_set!r} seeds of the {cell.final_checkpoint!r} "
                     f"checkpoint; move it away to rerun it")
     return "partial" if _has_state(p) else "new"
 
@@ -547,8 +545,8 @@ def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool,
                     "--demos", str(demos_dir(cell, grid, out)),
                     "--final-episodes", str(grid.M), "--final-seed-set", grid.seed_set]
     argv += _eval_workers(grid)
-    if grid.final_checkpoint != "last":
-        argv += ["--final-checkpoint", grid.final_checkpoint]
+    if cell.final_checkpoint != "last":
+        argv += ["--final-checkpoint", cell.final_checkpoint]
     if stage1_cache:
         argv += ["--stage1-cache", str(out / "stage1_cache")]
     if cell.h is not None:
