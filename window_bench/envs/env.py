@@ -396,6 +396,17 @@ class WindowInstallEnv(gym.Env):
         shear = float(np.linalg.norm(f - pull * axis))
         return pull, shear, float(np.linalg.norm(tau))
 
+    def suction_load(self) -> float:
+        """How hard the cup is loaded over the last step, as a fraction of its nearest holding
+        limit (pull-off force, shear, peel moment): the reading of a vacuum cup's seal sensor.
+        0 when nothing is held; past 1 the grip breaks."""
+        if not self._latched:
+            return 0.0
+        pull, shear, moment = self.suction_wrench()
+        mu = self._randomization["friction_cup"]
+        return max(pull / VACUUM_HOLD_FORCE, shear / (mu * VACUUM_HOLD_FORCE),
+                   moment / VACUUM_HOLD_MOMENT, 0.0)
+
     # ------------------------------------------------------------------ step
     def _validate(self, action) -> np.ndarray:
         a = np.asarray(action, dtype=np.float64)

@@ -56,7 +56,11 @@ class OperatorProfile:
     reinsert to the seat instead of handing back in front of the opening);
     ``suction_cue_in_opening`` (false: a panel already in the opening that the policy lets go
     of, or that comes off the cup more than half-way in, is not a ``suction_lost`` cue; it
-    cannot fall, and acceptance judges it); ``steady_near_contact`` (the takeover's
+    cannot fall, and acceptance judges it); ``strain_threshold`` (the paper's "unstable
+    suction engagement": the cup's load, as a fraction of its holding limit, reaches this on
+    a step while the held panel is away from the opening - grinding against the rack, the
+    floor or the wall on the way - a takeover that lifts it clear and hands back, before the
+    grip breaks; 0: no such cue); ``steady_near_contact`` (the takeover's
     ``recovery_noise`` drops to ``FINE_NOISE_SCALE`` of itself while the installer aligns,
     inserts, recovers or seats, as the demonstrator's hand noise does; false: full noise
     throughout, which on the insertion alone keeps every takeover from seating).
@@ -91,6 +95,7 @@ class OperatorProfile:
     seat_after_insertion_takeover: bool = False
     suction_cue_in_opening: bool = True
     steady_near_contact: bool = False
+    strain_threshold: float = 0.0
 
     def __post_init__(self):
         checks = {
@@ -117,6 +122,7 @@ class OperatorProfile:
             "grasp_settle_steps": (self.grasp_settle_steps, 0, 50),
             "acquire_patience_steps": (self.acquire_patience_steps, 0, 600),
             "hover_steps": (self.hover_steps, 0, 600),
+            "strain_threshold": (self.strain_threshold, 0.0, 1.0),
         }
         for key, (value, lo, hi) in checks.items():
             if isinstance(value, bool) or not (lo <= value <= hi):

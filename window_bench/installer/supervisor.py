@@ -24,6 +24,13 @@ state. Safety takeovers fire on
   ``suction_cue_in_opening`` false, not for a panel already in the opening that the policy
   lets go of or that comes off the cup more than half-way in: it cannot fall, and acceptance
   judges it; ``info["suction_failed"]`` tells a broken grip from a release);
+* ``unstable_suction`` (profiles with ``strain_threshold``) - the cup's load reaches that
+  fraction of its holding limit (``WindowInstallEnv.suction_load``, the cup's seal sensor,
+  which the demonstrator also watches) while the held panel is more than ``HOVER_ZONE`` in
+  front of the wall face: the panel grinds against the rack, the floor or the wall on the
+  way. Not in the first ``LATCH_GRACE_STEPS`` after a fresh latch (a cup pressed onto a panel
+  is loaded while it seals). The installer lifts it clear (a panel still low, as on the
+  rack) and hands back;
 * ``wedging`` - at the entry (the leading face within 5 mm of the wall face) or inside the
   opening, tilt or lateral offset past the operator's thresholds while the commanded motion
   is blocked (contact proxy above ``BLOCKED_MIN``) for the operator's ``wedge_steps``
@@ -177,12 +184,14 @@ def fine_pose_inputs(owner: str, mm: float, obs_dim: int) -> int:
 
 
 #: Safety cues, in the order they are checked.
-CUES = ("suction_lost", "wedging", "stall", "reinsertion", "hover", "acquisition",
+CUES = ("suction_lost", "unstable_suction", "wedging", "stall", "reinsertion", "hover", "acquisition",
         "no_progress")
 #: Cues raised while the panel is being inserted (or about to be).
 INSERTION_CUES = ("wedging", "stall", "reinsertion", "hover")
 HOVER_ZONE = 0.05             # m in front of the wall face: "at the opening, not yet in"
 ACQUIRE_REACH = 0.08          # m between the tool and the free panel's centre: "at the pick"
+LIFT_CLEAR_Z = 0.43           # m: a strained panel below this is lifted before transport
+LATCH_GRACE_STEPS = 15        # steps after a latch in which the cup's load is not a cue
 
 ENTRY_DEPTH = -S.STOP_DEPTH   # seat-relative depth at which the leading face meets the wall
 SEATED_DEPTH = -0.002
@@ -248,6 +257,7 @@ class InstallerSupervisor:
         self.vacuum_was_on = None
         self.at_pick_steps = 0
         self.front_steps = 0
+        self.since_latch = LATCH_GRACE_STEPS     # a panel held from the start has settled
 
     # ------------------------------------------------------------------ cues
     def _cue(self, f: dict, info: dict) -> str | None:
@@ -271,6 +281,8 @@ class InstallerSupervisor:
         judged_by_acceptance = (not p.suction_cue_in_opening
                                 and inside and (deep or not broke))
         lost = self.vacuum_was_on is True and not vac and not seated and not judged_by_acceptance
+        self.since_latch = (0 if vac and self.vacuum_was_on is False
+                            else self.since_latch + 1 if vac else 0)
         self.vacuum_was_on = vac
         if zone and not self.in_zone:
             self.entries += 1
@@ -302,6 +314,10 @@ class InstallerSupervisor:
 
         if lost:
             return "suction_lost"
+        if (p.strain_threshold and vac and self.since_latch >= LATCH_GRACE_STEPS
+                and depth <= ENTRY_DEPTH - HOVER_ZONE
+                and self.env.suction_load() >= p.strain_threshold):
+            return "unstable_suction"
         if self.off_axis_steps >= p.wedge_steps:
             return "wedging"
         n = p.stall_steps
@@ -343,8 +359,12 @@ class InstallerSupervisor:
             self.installer.recoveries = 0
             self.installer._set("align")
         else:
-            self.installer.take_over()
+            phase = self.installer.take_over()
             self.start_recoveries = self.installer.recoveries
+            panel = self.env.panel_pose()[0]
+            if cue == "unstable_suction" and phase == "transport" and panel[2] < LIFT_CLEAR_Z:
+                self.installer.lift_start = panel.copy()   # clear of what it grinds on first
+                self.installer._set("lift")
 
     def _restored(self) -> bool:
         """Back inside the recoverable envelope (time to hand back)?"""
@@ -355,6 +375,8 @@ class InstallerSupervisor:
             return inst.phase == "seat" or (inst.phase == "insert" and inst.recoveries > 0)
         if self.active_cue == "acquisition":
             return inst.phase == "transport"    # picked up and lifted clear
+        if self.active_cue == "unstable_suction" and inst.phase == "transport":
+            return self.steps_in > 1            # lifted clear
         if self.active_cue in INSERTION_CUES and self.profile.seat_after_insertion_takeover:
             return False                        # on to the seat (or max_takeover_steps)
         return inst.phase == "insert" and self.steps_in > 1
