@@ -38,7 +38,9 @@ class OperatorProfile:
     alignment (the installer's eye); ``coarse_align_error_mm`` / ``coarse_align_error_deg``
     bound the error of a first, by-eye placement in front of the opening that the installer
     then corrects after a close look (0: no by-eye placement); ``grasp_settle_steps`` (B) is how long the installer
-    holds still once the cup latches before lifting (0: lifts at once).
+    holds still once the cup latches before lifting (0: lifts at once); ``pick_error_mm`` (B)
+    bounds how far from the face's centre, along each edge, the installer's cup lands when it
+    picks the panel up (0: at the centre).
 
     Takeovers: ``reaction_latency_steps`` between the cue and the takeover; trigger
     thresholds ``stall_steps`` (steps of blocked insertion), ``tilt_threshold_deg`` and
@@ -78,6 +80,7 @@ class OperatorProfile:
     align_error_deg: float = 0.75
     coarse_align_error_mm: float = 0.0
     coarse_align_error_deg: float = 0.0
+    pick_error_mm: float = 0.0
     # takeovers
     reaction_latency_steps: int = 2
     stall_steps: int = 5
@@ -109,6 +112,7 @@ class OperatorProfile:
             "align_error_deg": (self.align_error_deg, 0.0, 5.0),
             "coarse_align_error_mm": (self.coarse_align_error_mm, 0.0, 20.0),
             "coarse_align_error_deg": (self.coarse_align_error_deg, 0.0, 5.0),
+            "pick_error_mm": (self.pick_error_mm, 0.0, 20.0),
             "reaction_latency_steps": (self.reaction_latency_steps, 0, 50),
             "stall_steps": (self.stall_steps, 1, 100),
             "wedge_steps": (self.wedge_steps, 1, 100),
@@ -230,7 +234,8 @@ class HumanlikeInstaller:
         self.installer = ScriptedInstaller(env, p.align_error_mm, p.align_error_deg, seed=seed,
                                            grasp_settle_steps=p.grasp_settle_steps,
                                            coarse_align_error_mm=p.coarse_align_error_mm,
-                                           coarse_align_error_deg=p.coarse_align_error_deg)
+                                           coarse_align_error_deg=p.coarse_align_error_deg,
+                                           pick_error_mm=p.pick_error_mm)
         self.rng = np.random.default_rng(seed)
         self.noise = OUNoise(6, p.motion_noise, p.noise_tau_steps, self.rng)
         self.reset(seed)

@@ -74,7 +74,8 @@ class ScriptedInstaller(_PanelPoseMixin):
 
     def __init__(self, env, align_error_mm: float = 1.0, align_error_deg: float = 0.5,
                  seed: int | None = None, grasp_settle_steps: int = 0,
-                 coarse_align_error_mm: float = 0.0, coarse_align_error_deg: float = 0.0):
+                 coarse_align_error_mm: float = 0.0, coarse_align_error_deg: float = 0.0,
+                 pick_error_mm: float = 0.0):
         """``align_error_*``: half-widths of a per-episode uniform error in the installer's
         estimate of where the seat is (lateral per axis, and rotation about each axis) - the
         accuracy of one visual alignment. Contact stalls reveal it: each recovery
@@ -84,7 +85,13 @@ class ScriptedInstaller(_PanelPoseMixin):
         ``coarse_align_error_*``: half-widths of the error of the installer's first, by-eye
         placement in front of the opening; once the panel is there it takes a close look
         (the error drops to the ``align_error_*`` draw) and corrects before inserting, so the
-        demonstration shows the correction. 0 and 0: one alignment with the close look."""
+        demonstration shows the correction. 0 and 0: one alignment with the close look.
+        ``pick_error_mm`` (B): half-width of a per-episode uniform offset, along each edge of
+        the face, of where the cup lands on the panel (0: the face's centre); the transport
+        and insertion measure the grip, so a demonstration carries the panel, not the tool,
+        to the seat whatever the offset."""
+        if not 0 <= pick_error_mm <= 20:
+            raise ValueError(f"pick_error_mm = {pick_error_mm!r} is outside [0, 20]")
         if min(align_error_mm, align_error_deg, coarse_align_error_mm, coarse_align_error_deg) < 0:
             raise ValueError(f"alignment errors must be >= 0, got {align_error_mm} mm, {align_error_deg} deg, "
                              f"coarse {coarse_align_error_mm} mm, {coarse_align_error_deg} deg")
@@ -94,6 +101,7 @@ class ScriptedInstaller(_PanelPoseMixin):
         self.env = env.unwrapped
         self.align_error = (align_error_mm / 1000.0, np.deg2rad(align_error_deg))
         self.coarse_align_error = (coarse_align_error_mm / 1000.0, np.deg2rad(coarse_align_error_deg))
+        self.pick_error = pick_error_mm / 1000.0
         self.rng = np.random.default_rng(seed)
         self.reset()
 
@@ -110,6 +118,9 @@ class ScriptedInstaller(_PanelPoseMixin):
         self.coarse = any(self.coarse_align_error)
         self.coarse_pos, self.coarse_rot = (self._draw_error(*self.coarse_align_error)
                                             if self.coarse else (np.zeros(3), np.zeros(3)))
+        # Drawn last, and only when set, so that other profiles keep their demonstrations.
+        self.pick_offset = (np.array([*self.rng.uniform(-self.pick_error, self.pick_error, 2), 0.0])
+                            if self.pick_error else np.zeros(3))
         self.phase = None
         self.depth_hist: list[float] = []
         self.recoveries = 0
@@ -198,11 +209,17 @@ class ScriptedInstaller(_PanelPoseMixin):
         self.phase_steps += 1
         return a
 
+    def _pick_pose(self, p, R):
+        """Where the TCP goes to pick the free panel: the face's centre plus the episode's
+        pick offset, tool normal to the face."""
+        face, tool = self.env._tcp_for_panel(p, R)
+        return face + R @ self.pick_offset, tool
+
     def _approach(self):
         """B: hover 8 cm above the suction face, tool normal to it."""
         p, R = self.env.panel_pose()
         tcp_pos, tcp_mat = self.env.tcp_pose()
-        face, tool = self.env._tcp_for_panel(p, R)
+        face, tool = self._pick_pose(p, R)
         hover = face + R[:, 2] * 0.08
         if np.linalg.norm(tcp_pos - hover) < 0.004 and np.linalg.norm(mat_to_rotvec(tcp_mat.T @ tool)) < 0.02:
             self._set("descend")
@@ -211,7 +228,7 @@ class ScriptedInstaller(_PanelPoseMixin):
     def _descend(self):
         p, R = self.env.panel_pose()
         tcp_pos, tcp_mat = self.env.tcp_pose()
-        face, tool = self.env._tcp_for_panel(p, R)
+        face, tool = self._pick_pose(p, R)
         goal = face + R[:, 2] * 0.002
         close = float((tcp_pos - face) @ R[:, 2]) < 0.006
         if self.env.suction_engaged:
