@@ -68,7 +68,8 @@ from torchrl.modules import MLP
 from window_bench.data.steplog import PROVENANCES, EpisodeLog
 from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
                                         module_state, optimizer_state, plain, with_overrides)
-from window_bench.envs.env import VACUUM_THRESHOLD
+from window_bench.envs.env import (POS_SCALE, ROT_SCALE, VACUUM_THRESHOLD, mat_to_rotvec,
+                                   rotvec_to_mat)
 from window_bench.installer.supervisor import (FLAT_DIM, FLAT_SLICES, check_fine_pose,
                                               fine_pose_features, fine_pose_inputs)
 
@@ -192,6 +193,15 @@ class HILSERLConfig:
         (``examples/experiments/ram_insertion/config.py:47``,
         ``usb_pickup_insertion/config.py:51``): about ``(0.4, 0.7)`` here. ``(1, 1)``
         (default): the env's own scale.
+    safety_box : (float, float) or None
+        HIL-SERL's safety box (``clip_safety_box`` in ``franka_env/envs/franka_env.py``,
+        bounds ``ABS_POSE_LIMIT_LOW/HIGH`` per task, e.g. ``ram_insertion/config.py``: a few
+        centimetres and 0.01-0.4 rad around the target): every pose the policy commands is
+        clipped into a box. Here the box is the demonstrations' TCP envelope (position, and
+        orientation as a rotation vector from the first demonstration's final TCP pose)
+        widened by ``(metres, degrees)``; the policy's action is replaced by the one that
+        commands the clipped pose (flat state only). Takeovers are not clipped. None
+        (default): no box.
     offline_steps : int or None
         Stage I gradient steps (offline pretraining on D_demo only). None: the profile's
         ``offline_steps`` (the paper's protocol); 0: no Stage I, the learner starts with the
@@ -230,6 +240,7 @@ class HILSERLConfig:
     suction_loss_terminal: bool = False
     target_range: tuple[float, float] | None = None
     action_scale: tuple[float, float] = (1.0, 1.0)
+    safety_box: tuple[float, float] | None = None
     offline_steps: int | None = None
     fine_pose_mm: float = 0.0
     fine_pose_deg: float = 1.0
@@ -315,6 +326,13 @@ class HILSERLConfig:
             raise ValueError(f"action_scale = {self.action_scale!r} is not allowed: it must be "
                              f"two numbers in (0, 1] (translation, rotation)")
         object.__setattr__(self, "action_scale", tuple(float(v) for v in scale))
+        if self.safety_box is not None:
+            box = tuple(self.safety_box) if isinstance(self.safety_box, (list, tuple)) else ()
+            if not (len(box) == 2 and all(real(v) for v in box)
+                    and 0 <= box[0] <= 1 and 0 <= box[1] <= 180):
+                raise ValueError(f"safety_box = {self.safety_box!r} is not allowed: it must be "
+                                 f"[metres in [0, 1], degrees in [0, 180]] or None")
+            object.__setattr__(self, "safety_box", tuple(float(v) for v in box))
         check_fine_pose("HILSERLConfig", self.fine_pose_mm, self.fine_pose_deg)
         if not (real(self.grasp_penalty) and self.grasp_penalty <= 0):
             raise ValueError(f"grasp_penalty = {self.grasp_penalty!r} is not allowed: it must "
@@ -467,6 +485,72 @@ def symmetric_sampler(sample_demo: Callable[[int], TensorDict],
     return sample
 
 
+def _tcp_pose(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """TCP position and rotation matrix of one flat observation."""
+    import mujoco
+
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, np.asarray(obs[FLAT_SLICES["robot0_eef_quat"]], np.float64))
+    return np.asarray(obs[FLAT_SLICES["robot0_eef_pos"]], np.float64), mat.reshape(3, 3)
+
+
+@dataclass(frozen=True)
+class SafetyBox:
+    """HIL-SERL's safety box on commanded TCP poses (``HILSERLConfig.safety_box``):
+    positions in ``[pos_low, pos_high]`` (m, world) and orientations whose rotation vector
+    from ``rot_ref`` lies in ``[rot_low, rot_high]`` (rad, per component)."""
+
+    pos_low: np.ndarray
+    pos_high: np.ndarray
+    rot_low: np.ndarray
+    rot_high: np.ndarray
+    rot_ref: np.ndarray
+
+    @classmethod
+    def from_demos(cls, episodes: list[EpisodeLog], margin_m: float,
+                   margin_deg: float) -> "SafetyBox":
+        """The TCP envelope of every observation of ``episodes`` (flat state), widened by
+        the margins; the reference orientation is the first episode's final TCP pose."""
+        if not episodes:
+            raise ValueError("SafetyBox.from_demos: got no episodes; need at least one")
+        obs = np.concatenate([np.asarray(ep.observations, np.float64) for ep in episodes])
+        if obs.shape[1] != FLAT_DIM:
+            raise ValueError(f"SafetyBox.from_demos: observations of size {obs.shape[1]}; "
+                             f"the box reads the flat state ({FLAT_DIM})")
+        ref = _tcp_pose(np.asarray(episodes[0].observations[-1]))[1]
+        pos, rot = [], []
+        for row in obs:
+            p, mat = _tcp_pose(row)
+            pos.append(p)
+            rot.append(mat_to_rotvec(ref.T @ mat))
+        pos, rot, md = np.array(pos), np.array(rot), math.radians(margin_deg)
+        return cls(pos.min(0) - margin_m, pos.max(0) + margin_m, rot.min(0) - md,
+                   rot.max(0) + md, ref)
+
+    def clip(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
+        """``action`` (env units, ``(A,)``) changed to command the nearest pose in the box
+        from the state of ``obs`` (the env's step: target = p + R a[:3] * POS_SCALE and
+        R rotvec(a[3:6] * ROT_SCALE)); entries stay in [-1, 1], the vacuum is untouched."""
+        p, mat = _tcp_pose(obs)
+        a = np.asarray(action, np.float64).copy()
+        target = np.clip(p + mat @ (a[:3] * POS_SCALE), self.pos_low, self.pos_high)
+        a[:3] = mat.T @ (target - p) / POS_SCALE
+        turned = mat @ rotvec_to_mat(a[3:6] * ROT_SCALE)
+        v = np.clip(mat_to_rotvec(self.rot_ref.T @ turned), self.rot_low, self.rot_high)
+        a[3:6] = mat_to_rotvec(mat.T @ self.rot_ref @ rotvec_to_mat(v)) / ROT_SCALE
+        a[:6] = np.clip(a[:6], -1.0, 1.0)
+        return a.astype(np.float32)
+
+    def state(self) -> dict:
+        return {k: torch.as_tensor(np.asarray(getattr(self, k)), dtype=torch.float64)
+                for k in ("pos_low", "pos_high", "rot_low", "rot_high", "rot_ref")}
+
+    @classmethod
+    def from_state(cls, state: dict) -> "SafetyBox":
+        return cls(**{k: np.asarray(state[k], np.float64) for k in
+                      ("pos_low", "pos_high", "rot_low", "rot_high", "rot_ref")})
+
+
 def obs_normalizer(episodes: list[EpisodeLog]) -> tuple[np.ndarray, np.ndarray]:
     """Mean and standard deviation of every observation row of ``episodes`` (float64);
     pass them to :class:`HILSERLAgent` (which floors the std at ``obs_std_floor``)."""
@@ -508,6 +592,20 @@ class HILSERLAgent(Agent):
         return with_overrides(HILSERLConfig(hidden=tuple(profile.hidden),
                                             batch_size=profile.batch_size), overrides)
 
+    @classmethod
+    def create(cls, spec) -> "HILSERLAgent":
+        """The default construction, plus the safety box from D_demo when configured."""
+        agent = super().create(spec)
+        if agent.config.safety_box is not None:
+            agent.fit_safety_box(spec.demos)
+        return agent
+
+    def fit_safety_box(self, episodes: list[EpisodeLog]) -> None:
+        """Set the box of ``config.safety_box`` from these (demonstration) episodes."""
+        if self.config.safety_box is None:
+            raise ValueError("fit_safety_box: config.safety_box is None (no box)")
+        self.box = SafetyBox.from_demos(episodes, *self.config.safety_box)
+
     @property
     def offline_steps(self) -> int | None:
         """Stage I gradient steps for the harness: the config's, None for the profile's."""
@@ -523,7 +621,18 @@ class HILSERLAgent(Agent):
                 "action_dim": self.action_dim, "seed": self.seed,
                 "obs_mean": self.obs_mean.clone(), "obs_std": self.obs_std.clone(),
                 **{name: module_state(getattr(self, name)) for name in self.ACTING_MODULES
-                   if getattr(self, name, None) is not None}}
+                   if getattr(self, name, None) is not None}, **self._box_state()}
+
+    def _box_state(self) -> dict:
+        return {} if self.box is None else {"safety_box": self.box.state()}
+
+    def _load_box(self, state: dict) -> None:
+        if (self.config.safety_box is None) != ("safety_box" not in state):
+            raise ValueError(f"a state with{'out' if 'safety_box' not in state else ''} a "
+                             f"safety box for a config with safety_box = "
+                             f"{self.config.safety_box}")
+        self.box = (SafetyBox.from_state(state["safety_box"]) if "safety_box" in state
+                    else None)
 
     @classmethod
     def from_policy_state_dict(cls, state: dict) -> "HILSERLAgent":
@@ -532,6 +641,7 @@ class HILSERLAgent(Agent):
         agent = cls(state["obs_dim"], state["action_dim"],
                     config_from_plain(HILSERLConfig, _state_config(state)), seed=state["seed"])
         agent.obs_mean, agent.obs_std = state["obs_mean"].clone(), state["obs_std"].clone()
+        agent._load_box(state)
         for name in cls.ACTING_MODULES:
             if getattr(agent, name, None) is not None:
                 getattr(agent, name).load_state_dict(state[name])
@@ -559,6 +669,11 @@ class HILSERLAgent(Agent):
         t, r = config.action_scale
         self._motion_scale = torch.tensor([t if i < 3 else r if i < 6 else 1.0
                                            for i in range(action_dim)], dtype=torch.float32)
+        self.box: SafetyBox | None = None     # fit_safety_box (create does it from D_demo)
+        if config.safety_box is not None and obs_dim != FLAT_OBS_DIM:
+            raise ValueError(f"safety_box = {list(config.safety_box)} needs the flat state "
+                             f"observation (obs_dim {FLAT_OBS_DIM}); this agent has obs_dim = "
+                             f"{obs_dim}")
         if config.suction_loss_terminal and obs_dim != FLAT_OBS_DIM:
             raise ValueError(f"suction_loss_terminal = true needs the flat state observation "
                              f"(obs_dim {FLAT_OBS_DIM}, vacuum flag at index "
@@ -659,6 +774,11 @@ class HILSERLAgent(Agent):
             elif self.held_vacuum:
                 a = torch.cat([a, a.new_full((a.shape[0], 1), VACUUM_ON)], dim=-1)
         a = a.numpy().astype(np.float32)
+        if self.config.safety_box is not None:
+            if self.box is None:
+                raise RuntimeError("safety_box is configured but not fitted: call "
+                                   "fit_safety_box(demos) (HILSERLAgent.create does)")
+            a = np.stack([self.box.clip(o, row) for o, row in zip(x.reshape(-1, self.obs_dim), a)])
         return a.reshape(1, self.action_dim) if x.ndim == 1 else a[:, None, :]
 
     def vacuum_command(self, obs, deterministic: bool = True) -> np.ndarray:
@@ -919,6 +1039,7 @@ class HILSERLAgent(Agent):
                 "target_grasp_critic": copy.deepcopy(self.target_grasp_critic.state_dict()),
                 "grasp_critic_opt": optimizer_state(self.grasp_critic_opt)}
                if self.discrete_vacuum else {}),
+            **self._box_state(),
         }
 
     @classmethod
@@ -935,8 +1056,9 @@ class HILSERLAgent(Agent):
         mine = dataclasses.asdict(self.config)
         theirs = _state_config(state)
         theirs["hidden"] = tuple(theirs["hidden"])
-        if theirs.get("target_range") is not None:
-            theirs["target_range"] = tuple(theirs["target_range"])
+        for key in ("target_range", "safety_box"):
+            if theirs.get(key) is not None:
+                theirs[key] = tuple(theirs[key])
         if theirs != mine:
             diff = sorted(k for k in mine if mine[k] != theirs.get(k))
             raise ValueError(f"load_state_dict: config differs in {diff}: "
@@ -948,6 +1070,7 @@ class HILSERLAgent(Agent):
                                  f"{getattr(self, key)} in this agent")
         self.seed = state["seed"]
         self.obs_mean, self.obs_std = state["obs_mean"].clone(), state["obs_std"].clone()
+        self._load_box(state)
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
         self.target_critic.load_state_dict(state["target_critic"])
@@ -973,7 +1096,7 @@ def _state_config(state: dict) -> dict:
     before ``action_scale`` acted in the env's units."""
     config = {"vacuum_head": "gaussian", "obs_clip": None, "vacuum_epsilon": 0.0,
               "offline_steps": None, "suction_loss_terminal": False, "target_range": None,
-              "action_scale": (1.0, 1.0), **state["config"]}
+              "action_scale": (1.0, 1.0), "safety_box": None, **state["config"]}
     config["action_scale"] = tuple(config["action_scale"])
     if "grasp_penalty" not in config:
         config["grasp_penalty"] = 0.0

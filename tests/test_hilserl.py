@@ -849,3 +849,60 @@ def test_propagation_check_targets_are_the_true_returns(demo, h):
     rebuilt = d["ret"] + d["disc"] * (1 - d["done"]) * d["rtg"][nxt]
     np.testing.assert_allclose(rebuilt, d["rtg"], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(d["disc"][:T - h], GAMMA ** h, rtol=1e-6)
+
+
+def test_safety_box_clips_commanded_poses_into_the_demonstrations_envelope(demo):
+    """safety_box (HIL-SERL's clip_safety_box): the box is D_demo's TCP envelope widened by
+    the margins; an action commanding a pose outside it is replaced by the one commanding
+    the nearest pose inside, in the env's own step arithmetic; the box travels with the
+    policy file and the resume state; without demos or on pixels it refuses."""
+    from baselines.hilserl import _tcp_pose
+    from window_bench.envs.env import POS_SCALE, ROT_SCALE, mat_to_rotvec, rotvec_to_mat
+    from window_bench.harness.files import dump_state, parse_state
+
+    cfg = HILSERLConfig(hidden=(16,), batch_size=32, vacuum_head="held",
+                        safety_box=(0.01, 2.0))
+    agent = HILSERLAgent(OBS_DIM, config=cfg, seed=1)
+    with pytest.raises(RuntimeError, match="fit_safety_box"):
+        agent.act(demo.observations[0])
+    agent.fit_safety_box([demo])
+    box = agent.box
+    pos = np.array([_tcp_pose(o)[0] for o in demo.observations])
+    np.testing.assert_allclose(box.pos_low, pos.min(0) - 0.01)
+    np.testing.assert_allclose(box.pos_high, pos.max(0) + 0.01)
+    # Inside the box (the demonstration's own actions): unchanged up to float32.
+    for t in (0, 40, 80):
+        a = demo.actions[t]
+        np.testing.assert_allclose(box.clip(demo.observations[t], a), a, atol=1e-5)
+    # Full speed away from the envelope along every axis: the commanded pose lands on the
+    # box's face (position) or inside its rotation bounds, never beyond.
+    o = demo.observations[0]
+    p, mat = _tcp_pose(o)
+    for a in np.vstack([np.eye(7)[:6], -np.eye(7)[:6]]):
+        a = a.astype(np.float32) + np.float32([0, 0, 0, 0, 0, 0, 1])
+        c = box.clip(o, a).astype(np.float64)
+        target = p + mat @ (c[:3] * POS_SCALE)
+        assert np.all(target >= box.pos_low - 1e-9) and np.all(target <= box.pos_high + 1e-9)
+        v = mat_to_rotvec(box.rot_ref.T @ mat @ rotvec_to_mat(c[3:6] * ROT_SCALE))
+        assert np.all(v >= box.rot_low - 1e-6) and np.all(v <= box.rot_high + 1e-6)
+        assert c[6] == 1 and np.all(np.abs(c[:6]) <= 1)
+    # act() is the same weights' unboxed action, clipped.
+    unboxed = HILSERLAgent(OBS_DIM, config=dataclasses.replace(cfg, safety_box=None), seed=1)
+    obs = demo.observations[:5]
+    expected = [box.clip(o, a[0]) for o, a in zip(obs, unboxed.act(obs, deterministic=True))]
+    np.testing.assert_allclose(agent.act(obs, deterministic=True)[:, 0], expected, atol=1e-6)
+    # The policy file and the resume state carry the box; a state without one is refused.
+    state, _ = parse_state(dump_state(agent.policy_state_dict(), "policy"), "x", "policy")
+    again = HILSERLAgent.from_policy_state_dict(state)
+    np.testing.assert_array_equal(again.act(demo.observations[:5], deterministic=True),
+                                  agent.act(demo.observations[:5], deterministic=True))
+    resumed = HILSERLAgent.from_state_dict(agent.state_dict())
+    np.testing.assert_array_equal(resumed.box.pos_high, box.pos_high)
+    bare = {k: v for k, v in agent.policy_state_dict().items() if k != "safety_box"}
+    with pytest.raises(ValueError, match="safety box"):
+        HILSERLAgent.from_policy_state_dict(bare)
+    with pytest.raises(ValueError, match="flat state"):
+        HILSERLAgent(20, config=cfg)
+    for bad in ((0.01,), (-0.01, 2.0), (0.01, 200.0), (float("nan"), 1.0)):
+        with pytest.raises(ValueError, match="safety_box"):
+            HILSERLConfig(safety_box=bad)

@@ -65,6 +65,32 @@ def test_controllers_act_through_the_7d_interface(make_env):
         assert np.all(np.abs(a) <= 1.0), name
 
 
+def test_pick_error_moves_where_the_cup_lands_and_the_panel_still_seats(make_env):
+    env = make_env(B)
+    u = env.unwrapped
+    for seed in (7, 9):   # draws of (6, -8) and (7, 6) mm
+        ctrl = ScriptedInstaller(env, align_error_mm=0.0, align_error_deg=0.0, seed=seed,
+                                 grasp_settle_steps=10, pick_error_mm=8.0)
+        plain = ScriptedInstaller(env, align_error_mm=0.0, align_error_deg=0.0, seed=seed)
+        assert np.abs(ctrl.pick_offset[:2]).max() > 2e-3 and ctrl.pick_offset[2] == 0
+        np.testing.assert_array_equal(plain.pick_offset, 0.0)      # other draws unchanged
+        np.testing.assert_array_equal(plain.err_pos, ctrl.err_pos)
+        obs, _ = env.reset(seed=seed)
+        grasp, done, term = None, False, False
+        while not done:
+            obs, _, term, trunc, _ = env.step(ctrl.act(obs))
+            done = term or trunc
+            if u.suction_engaged and grasp is None:
+                d, sc = u.data, u.scene
+                pm = d.xmat[sc.panel_body].reshape(3, 3)
+                grasp = pm.T @ (d.site_xpos[sc.tcp_site] - d.xpos[sc.panel_body])
+        # The cup lands where it aimed (within the 2 mm of the descent), and the panel seats.
+        np.testing.assert_allclose(grasp[:2], ctrl.pick_offset[:2], atol=2.5e-3)
+        assert term
+    with pytest.raises(ValueError, match=r"pick_error_mm = 25.0 is outside \[0, 20\]"):
+        ScriptedInstaller(env, pick_error_mm=25.0)
+
+
 def test_controller_rejects_negative_errors(make_env):
     env = make_env(A)
     with pytest.raises(ValueError, match="alignment errors"):

@@ -232,6 +232,73 @@ def test_suction_lost_cue(env):
     assert _feed(env, sup, [_obs(vacuum=0.0)] * 5) == [None] * 5
 
 
+def test_suction_load_is_the_nearest_holding_limit(env):
+    from window_bench.envs.env import VACUUM_HOLD_FORCE, VACUUM_HOLD_MOMENT
+
+    u = env.unwrapped
+    env.reset(seed=5)
+    for a in ([0, 0.4, 0, 0, 0, 0, 1], [0, 0.4, 0, 0, 0, 0, 1], [0, 0, 0, 0, 0, 0, 0]):
+        env.step(np.array(a, np.float32))
+        pull, shear, moment = u.suction_wrench()
+        mu = u._randomization["friction_cup"]
+        expected = max(pull / VACUUM_HOLD_FORCE, shear / (mu * VACUUM_HOLD_FORCE),
+                       moment / VACUUM_HOLD_MOMENT, 0.0) if u.suction_engaged else 0.0
+        assert u.suction_load() == pytest.approx(expected, abs=1e-12)
+    assert not u.suction_engaged and u.suction_load() == 0.0      # released: nothing held
+
+
+def _push_into_rack(env, profile, steps=40):
+    """A's panel, held on the rack, pushed along the tool's y (into the rack) every step the
+    supervisor leaves to the policy; (takeover kind per step, step of the first grip break)."""
+    push = np.array([0, 0.4, 0, 0, 0, 0, 1.0], np.float32)
+    sup = InstallerSupervisor(profile, coverage=False)
+    obs, info = env.reset(seed=100001)
+    sup.reset(env, seed=100001)
+    kinds, broke = [], None
+    for t in range(steps):
+        out = sup.intervene(obs, info)
+        a, kind = (push, None) if out is None else out
+        kinds.append(kind)
+        obs, _, _, _, info = env.step(a)
+        if info["suction_failed"] and broke is None:
+            broke = t
+    return sup, kinds, broke
+
+
+def test_unstable_suction_cue_lifts_a_strained_panel_clear_before_the_grip_breaks(env):
+    # Without the cue (every shipped profile but `attentive`) the grip breaks on the rack.
+    sup, kinds, broke = _push_into_rack(env, dataclasses.replace(OPERATORS["attentive"],
+                                                                 strain_threshold=0.0))
+    assert broke is not None and broke < 10 and sup.events[0][1] == "suction_lost"
+    assert get_operator("average").strain_threshold == 0.0
+    # With it, the installer takes over while the seal strains, lifts the panel, hands back.
+    sup, kinds, broke = _push_into_rack(env, get_operator("attentive"), steps=16)
+    assert get_operator("attentive").strain_threshold == 0.5
+    start = sup.events[0][0]
+    assert sup.events[0][1] == "unstable_suction" and broke is None
+    assert kinds[start] == "safety" and None in kinds[start:]            # handed back
+    assert sup.installer.phase == "transport"                             # lifted clear
+    assert env.unwrapped.panel_pose()[0][2] > 0.392                      # above the rack pose
+
+
+def test_unstable_suction_cue_waits_for_a_fresh_seal(env, monkeypatch):
+    # The load of a cup sealing onto a panel (B's pick) is not a cue for LATCH_GRACE_STEPS.
+    from window_bench.installer.supervisor import LATCH_GRACE_STEPS
+
+    monkeypatch.setattr(type(env.unwrapped), "suction_load", lambda self: 0.9)
+    far = ENTRY_DEPTH - 0.3
+    seq = [_obs(depth=far, vacuum=0.0)] * 2 + [_obs(depth=far, vacuum=1.0)] * 20
+    kinds = _feed(env, InstallerSupervisor(_profile(strain_threshold=0.5)), seq)
+    assert kinds.index("safety") == 2 + LATCH_GRACE_STEPS
+    # Held from the start (A): at once; near the opening the insertion cues judge it.
+    assert _feed(env, InstallerSupervisor(_profile(strain_threshold=0.5)),
+                 [_obs(depth=far)] * 2)[0] == "safety"
+    assert _feed(env, InstallerSupervisor(_profile(strain_threshold=0.5, patience_steps=600)),
+                 [_obs(depth=ENTRY_DEPTH - 0.02)] * 20) == [None] * 20
+    with pytest.raises(ValueError, match=r"strain_threshold = 1.5 is outside \[0.0, 1.0\]"):
+        _profile(strain_threshold=1.5)
+
+
 def test_stall_cue_needs_blocked_motion(env):
     inside = ENTRY_DEPTH + 0.03
     prof = _profile(stall_steps=4)

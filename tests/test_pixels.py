@@ -1021,19 +1021,20 @@ def test_bench_run_on_the_seat_camera_track(tmp_path, monkeypatch, demos_root):
         get_track("pixels").eval_env(ENV, {**policy, "cameras": "../x"})
 
 
-@pytest.mark.parametrize("method, field", [("qcfql-offline", "fine_pose_mm"),
-                                           ("qcfql", "grasp_mm"), ("act", "fine_pose_mm"),
-                                           ("hil-serl", "fine_pose_mm")])
+@pytest.mark.parametrize("method, field, value, shown, off", [
+    ("qcfql-offline", "fine_pose_mm", "10", "10", "0"), ("qcfql", "grasp_mm", "10", "10", "0"),
+    ("act", "fine_pose_mm", "10", "10", "0"), ("hil-serl", "fine_pose_mm", "10", "10", "0"),
+    ("hil-serl", "safety_box", "[0.03,10]", "(0.03, 10.0)", "none")])
 def test_state_only_features_are_refused_on_pixels_before_any_file(tmp_path, capsys, method,
-                                                                   field):
+                                                                   field, value, shown, off):
     """Features computed from the flat state have no place on a camera observation: one
     line naming the field, exit 2, and no run directory."""
     from window_bench.cli import main
 
     out = tmp_path / "run"
     assert main(["run", "--method", method, "--track", "pixels", "--out", str(out),
-                 "--agent-config", f"{field}=10"]) == 2
+                 "--agent-config", f"{field}={value}"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.endswith(f"{field} = 10 reads the flat state observation; on the pixel track "
-                        f"(cameras and proprioception) it must be 0 (off)")
+    assert err.endswith(f"{field} = {shown} reads the flat state observation; on the pixel "
+                        f"track (cameras and proprioception) it must be {off} (off)")
     assert len(err.splitlines()) == 1 and not out.exists()

@@ -159,7 +159,7 @@ def check_fine_pose(owner: str, mm, deg) -> None:
 
 
 #: Learner config fields whose features read the flat state observation (nonzero: on).
-STATE_ONLY_FIELDS = ("fine_pose_mm", "grasp_mm", "tool_in_panel_m")
+STATE_ONLY_FIELDS = ("fine_pose_mm", "grasp_mm", "tool_in_panel_m", "safety_box")
 
 
 def check_flat_state_fields(config, observation: str) -> None:
@@ -168,8 +168,9 @@ def check_flat_state_fields(config, observation: str) -> None:
     for field in STATE_ONLY_FIELDS:
         value = getattr(config, field, 0)
         if value:
+            off = "0" if isinstance(value, (int, float)) else "none"
             raise ValueError(f"{type(config).__name__}.{field} = {value!r} reads the flat state "
-                             f"observation; on {observation} it must be 0 (off)")
+                             f"observation; on {observation} it must be {off} (off)")
 
 
 def fine_pose_inputs(owner: str, mm: float, obs_dim: int) -> int:
