@@ -154,7 +154,8 @@ def main(argv=None) -> dict:
                 "run_h": round(sum(run_h.values()), 2)}
 
     paper_run = gpu_run("paper")
-    long_cells = [c for c in cells if c["profile"] == LONG_GRID]
+    long_names = {cell.name for cell in load_grid(Path("experiments") / f"{LONG_GRID}.toml").cells}
+    long_cells = [c for c in cells if c["cell"] in long_names]
     long_n, long_train, long_s = projected((LONG_GRID,), LONG_GRID)
     long_run = gpu_run(LONG_GRID, final_episodes=load_grid(
         Path("experiments") / f"{LONG_GRID}.toml").M)
