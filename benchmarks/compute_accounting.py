@@ -154,11 +154,11 @@ def main(argv=None) -> dict:
                 "run_h": round(sum(run_h.values()), 2)}
 
     paper_run = gpu_run("paper")
-    long_names = {cell.name for cell in load_grid(Path("experiments") / f"{LONG_GRID}.toml").cells}
+    long_grid = load_grid(Path("experiments") / f"{LONG_GRID}.toml")
+    long_names = {cell.name for cell in long_grid.cells}
     long_cells = [c for c in cells if c["cell"] in long_names]
     long_n, long_train, long_s = projected((LONG_GRID,), LONG_GRID)
-    long_run = gpu_run(LONG_GRID, final_episodes=load_grid(
-        Path("experiments") / f"{LONG_GRID}.toml").M)
+    long_run = gpu_run(LONG_GRID, final_episodes=long_grid.M)
     out = {"benchmark": "compute_accounting", "provenance": provenance(),
            "finished_cells": cells,
            "median_cell_wall_s_by_method_and_profile": {
