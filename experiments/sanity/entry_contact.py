@@ -7,7 +7,9 @@ how many steps it takes to reach 60 mm from the seat, the largest peel moment on
 over the 10 steps after that contact, and every grip break (the holding limit of
 ``WindowInstallEnv``: the cup lets go) with its depth and wrench. ``--unbreakable-grip``
 lifts the cup's holding limits (a counterfactual: does the grip break fail the episode, or
-the wedge that comes before it?); ``--no-peel-cue`` takes from the operator the one cue it
+the wedge that comes before it?); ``--centre-grip`` moves the panel under the cup at every
+latch so that the cup holds it at the centre of its face, as the demonstrator picks (a
+counterfactual: is the off-centre pick what fails the insertion?); ``--no-peel-cue`` takes from the operator the one cue it
 acts on that no policy observes (it backs off when the cup's peel moment passes 30 % of the
 holding limit).
 
@@ -160,6 +162,29 @@ def summary(eps: list[dict]) -> dict:
             "failures_with_grip_break_at_entry": sum(not e["success"] for e in at_entry)}
 
 
+def _centre_grip_at_latch() -> None:
+    """Patch ``WindowInstallEnv._set_latch``: before the weld is made, slide the panel in
+    its face plane so the TCP sits over the face's centre (gap and orientation kept)."""
+    import mujoco
+
+    from window_bench.envs.env import WindowInstallEnv
+
+    latch = WindowInstallEnv._set_latch
+
+    def centred(self, on: bool) -> None:
+        if on:
+            d, sc = self.data, self.scene
+            pm = d.xmat[sc.panel_body].reshape(3, 3).copy()
+            face_c = d.xpos[sc.panel_body] + pm[:, 2] * self.cfg.panel_thickness / 2
+            local = pm.T @ (d.site_xpos[sc.tcp_site] - face_c)
+            self._set_panel_pose(d.xpos[sc.panel_body] + pm @ np.array([local[0], local[1], 0.0]),
+                                 pm)
+            mujoco.mj_forward(self.model, d)
+        latch(self, on)
+
+    WindowInstallEnv._set_latch = centred
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     who = p.add_mutually_exclusive_group(required=True)
@@ -170,6 +195,8 @@ def main(argv=None) -> int:
                    help="development seeds from the first one (as `bench eval` takes them)")
     p.add_argument("--unbreakable-grip", action="store_true",
                    help="lift the cup's holding limits (pull, shear, peel moment)")
+    p.add_argument("--centre-grip", action="store_true",
+                   help="at every latch, slide the panel so the cup holds its face's centre")
     p.add_argument("--no-peel-cue", action="store_true",
                    help="with --operator: it does not back off on the cup's peel moment")
     p.add_argument("--out", required=True, help="JSON file to write (not overwritten)")
@@ -194,6 +221,8 @@ def main(argv=None) -> int:
         import window_bench.envs.env as env_module   # the step reads these module constants
 
         env_module.VACUUM_HOLD_FORCE = env_module.VACUUM_HOLD_MOMENT = float("inf")
+    if args.centre_grip:
+        _centre_grip_at_latch()
     env = gym.make(args.env, obs_mode="flat")
     reset, act = _actor(args, p, env)
     eps = []
@@ -203,6 +232,7 @@ def main(argv=None) -> int:
     env.close()
     out = {"actor": {"policy": args.policy} if args.policy else {"operator": args.operator},
            "env_id": args.env, "unbreakable_grip": args.unbreakable_grip,
+           "centre_grip": args.centre_grip,
            "no_peel_cue": args.no_peel_cue,
            "entry_mm": list(ENTRY_MM), "summary": summary(eps),
            "episodes": eps, "provenance": provenance()}
