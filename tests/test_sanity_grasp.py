@@ -129,3 +129,45 @@ def test_budget_runs_refuses_a_missing_run_in_one_line_before_writing(tmp_path, 
         br.main([str(tmp_path / "nope"), "--out", str(out)])
     assert e.value.code == 2 and not out.exists()
     assert len(capsys.readouterr().err.strip().splitlines()[-1]) > 0
+
+
+def test_entry_contact_centre_grip_latches_the_cup_over_the_face_centre(monkeypatch):
+    from window_bench.envs.env import WindowInstallEnv
+
+    monkeypatch.setattr(WindowInstallEnv, "_set_latch", WindowInstallEnv._set_latch)  # restored
+    ec = _script("entry_contact")
+    ec._centre_grip_at_latch()
+    env = gym.make("WindowInstall-B-v0", obs_mode="flat")
+    env.reset(seed=100003)
+    u = env.unwrapped
+
+    def tcp_on_face():
+        pm = u.data.xmat[u.scene.panel_body].reshape(3, 3)
+        face_c = u.data.xpos[u.scene.panel_body] + pm[:, 2] * u.cfg.panel_thickness / 2
+        return pm.T @ (u.data.site_xpos[u.scene.tcp_site] - face_c)
+
+    before = tcp_on_face()
+    assert np.hypot(before[0], before[1]) > 0.01          # the free panel lies elsewhere
+    u._set_latch(True)
+    after = tcp_on_face()
+    assert abs(after[0]) < 1e-9 and abs(after[1]) < 1e-9   # over the centre of the face
+    assert after[2] == pytest.approx(before[2], abs=1e-9)  # gap kept
+    env.close()
+
+
+def test_demo_label_noise_fits_slope_and_correlation_and_gives_none_without_spread():
+    d = _script("demo_label_noise")
+    x = np.linspace(-2, 2, 50)
+    assert d.fit(x, 0.3 * x + 1.0) == {"slope": 0.3, "r": 1.0}
+    assert d.fit(x, -0.5 * x)["r"] == -1.0
+    assert d.fit(np.zeros(10), x[:10]) == {"slope": None, "r": None}
+    assert d.fit(x[:2], x[:2]) == {"slope": None, "r": None}
+
+
+def test_demo_label_noise_refuses_an_unknown_operator_before_writing(tmp_path, capsys):
+    d = _script("demo_label_noise")
+    out = tmp_path / "o.json"
+    with pytest.raises(SystemExit) as e:
+        d.main(["--operator", "nobody", "--episodes", "1", "--out", str(out)])
+    assert e.value.code == 2 and not out.exists()
+    assert "--operator 'nobody'" in capsys.readouterr().err
