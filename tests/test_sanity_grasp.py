@@ -140,16 +140,10 @@ def test_entry_contact_centre_grip_latches_the_cup_over_the_face_centre(monkeypa
     env = gym.make("WindowInstall-B-v0", obs_mode="flat")
     env.reset(seed=100003)
     u = env.unwrapped
-
-    def tcp_on_face():
-        pm = u.data.xmat[u.scene.panel_body].reshape(3, 3)
-        face_c = u.data.xpos[u.scene.panel_body] + pm[:, 2] * u.cfg.panel_thickness / 2
-        return pm.T @ (u.data.site_xpos[u.scene.tcp_site] - face_c)
-
-    before = tcp_on_face()
+    before = u.tcp_on_face()
     assert np.hypot(before[0], before[1]) > 0.01          # the free panel lies elsewhere
     u._set_latch(True)
-    after = tcp_on_face()
+    after = u.tcp_on_face()
     assert abs(after[0]) < 1e-9 and abs(after[1]) < 1e-9   # over the centre of the face
     assert after[2] == pytest.approx(before[2], abs=1e-9)  # gap kept
     env.close()

@@ -62,19 +62,19 @@ def main(argv=None) -> int:
     demo = HumanlikeInstaller(env, profile)
     rows = []          # (distance mm, offset x, offset z, executed x, z, meant x, z)
     seated = 0
+    meant = {}         # the scripted installer's command of this step, before the hand noise
+    scripted_act = demo.installer.act
+
+    def act_and_keep(o=None):
+        a = scripted_act(o)
+        meant["a"] = np.asarray(a, dtype=np.float64).copy()
+        return a
+
+    demo.installer.act = act_and_keep
     for i in range(args.episodes):
         seed = 1_000_000 + i
         obs, _ = env.reset(seed=seed)
         demo.reset(seed)
-        meant = {}
-        scripted_act = demo.installer.act
-
-        def act_and_keep(o=None, _f=scripted_act):
-            a = _f(o)
-            meant["a"] = np.asarray(a, dtype=np.float64).copy()
-            return a
-
-        demo.installer.act = act_and_keep
         done = False
         while not done:
             meant.clear()
@@ -91,13 +91,13 @@ def main(argv=None) -> int:
             done = terminated or truncated
         seated += bool(terminated)
     env.close()
-    r = np.array(rows)
+    r = np.array(rows, dtype=np.float64).reshape(-1, 7)
     bands = []
     for lo, hi in BANDS_MM:
         b = r[(r[:, 0] >= lo) & (r[:, 0] < hi)]
-        bands.append({"distance_mm": [lo, hi], "steps": len(b),
-                      "offset_std_mm": {"x": round(float(b[:, 1].std()), 2),
-                                        "z": round(float(b[:, 2].std()), 2)},
+        spread = {"x": round(float(b[:, 1].std()), 2), "z": round(float(b[:, 2].std()), 2)} \
+            if len(b) else {"x": None, "z": None}
+        bands.append({"distance_mm": [lo, hi], "steps": len(b), "offset_std_mm": spread,
                       "executed": {"x": fit(b[:, 1], b[:, 3]), "z": fit(b[:, 2], b[:, 4])},
                       "meant": {"x": fit(b[:, 1], b[:, 5]), "z": fit(b[:, 2], b[:, 6])}})
         print(json.dumps(bands[-1]))

@@ -9,9 +9,9 @@ over the 10 steps after that contact, and every grip break (the holding limit of
 lifts the cup's holding limits (a counterfactual: does the grip break fail the episode, or
 the wedge that comes before it?); ``--centre-grip`` moves the panel under the cup at every
 latch so that the cup holds it at the centre of its face, as the demonstrator picks (a
-counterfactual: is the off-centre pick what fails the insertion?); ``--no-peel-cue`` takes from the operator the one cue it
-acts on that no policy observes (it backs off when the cup's peel moment passes 30 % of the
-holding limit).
+counterfactual: is the off-centre pick what fails the insertion?); ``--no-peel-cue`` takes
+from the operator the one cue it acts on that no policy observes (it backs off when the
+cup's peel moment passes 30 % of the holding limit).
 
     python experiments/sanity/entry_contact.py --policy POLICY --env WindowInstall-B-v0 \
         --episodes 20 --out experiments/sanity/results/entry_contact_qcfql_offline_fine_B_s2.json
@@ -175,10 +175,8 @@ def _centre_grip_at_latch() -> None:
         if on:
             d, sc = self.data, self.scene
             pm = d.xmat[sc.panel_body].reshape(3, 3).copy()
-            face_c = d.xpos[sc.panel_body] + pm[:, 2] * self.cfg.panel_thickness / 2
-            local = pm.T @ (d.site_xpos[sc.tcp_site] - face_c)
-            self._set_panel_pose(d.xpos[sc.panel_body] + pm @ np.array([local[0], local[1], 0.0]),
-                                 pm)
+            across, vertical, _ = self.tcp_on_face()
+            self._set_panel_pose(d.xpos[sc.panel_body] + pm @ np.array([across, vertical, 0.0]), pm)
             mujoco.mj_forward(self.model, d)
         latch(self, on)
 

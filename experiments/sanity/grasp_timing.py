@@ -37,10 +37,7 @@ from window_bench.harness.seeds import eval_seeds  # noqa: E402
 def face_gap(env) -> float:
     """Signed distance (m) of the TCP (cup lip) above the panel's suction face, along its
     normal: the quantity the env's engage test bounds by ``SNAP_DISTANCE``."""
-    d, sc, cfg = env.data, env.scene, env.cfg
-    pm = d.xmat[sc.panel_body].reshape(3, 3)
-    face = d.xpos[sc.panel_body] + pm[:, 2] * cfg.panel_thickness / 2
-    return float(pm[:, 2] @ (d.site_xpos[sc.tcp_site] - face))
+    return float(env.tcp_on_face()[2])
 
 
 def episode(policy: ChunkPolicy, env_id: str, seed: int) -> dict:

@@ -366,15 +366,21 @@ class WindowInstallEnv(gym.Env):
         m.geom_contype[sc.cup_geom] = 0 if on else S.CUP_PANEL_BIT
         self._latched = on
 
+    def tcp_on_face(self) -> np.ndarray:
+        """The TCP's offset from the centre of the panel's suction face, in the panel's frame
+        (m): across, vertical, and the gap along the face normal."""
+        d, sc = self.data, self.scene
+        pm = d.xmat[sc.panel_body].reshape(3, 3)
+        face_c = d.xpos[sc.panel_body] + pm[:, 2] * self.cfg.panel_thickness / 2
+        return pm.T @ (d.site_xpos[sc.tcp_site] - face_c)
+
     def suction_valid(self) -> bool:
         """Engage rule: cup lip within the snap distance of the suction face, roughly normal
         to it, and over the face (not past its edge)."""
         d, sc = self.data, self.scene
-        tcp = d.site_xpos[sc.tcp_site]
         tool_z = d.site_xmat[sc.tcp_site].reshape(3, 3)[:, 2]
         pm = d.xmat[sc.panel_body].reshape(3, 3)
-        face_c = d.xpos[sc.panel_body] + pm[:, 2] * self.cfg.panel_thickness / 2
-        local = pm.T @ (tcp - face_c)
+        local = self.tcp_on_face()
         margin = S.CUP_RADIUS
         over_face = (abs(local[0]) <= self.cfg.panel_width / 2 - margin
                      and abs(local[1]) <= self.cfg.panel_height / 2 - margin)
