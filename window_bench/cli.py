@@ -238,7 +238,7 @@ def cmd_run(args) -> int:
                   final_episodes=args.final_episodes, final_seed_set=args.final_seed_set,
                   final_checkpoint=args.final_checkpoint,
                   stage1_cache=args.stage1_cache, eval_workers=args.eval_workers,
-                  pixel_demos_cache=args.pixel_demos_cache)
+                  pixel_demos_cache=args.pixel_demos_cache, demo_actions=args.demo_actions)
     except (ValueError, FileExistsError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -509,6 +509,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="operator profile for demonstrations and takeovers")
     r.add_argument("--demos", type=arg.dir_path, help="Minari datasets root holding the "
                    "demonstrations (None: collect them into OUT/demos)")
+    r.add_argument("--demo-actions", choices=["executed", "meant"], default="executed",
+                   help="the actions learners train on from D_demo: as executed (the paper's "
+                        "record) or as the demonstrator meant them, before its hand's noise "
+                        "(DART-style labels; docs/results/diagnoses/b-demos.md)")
     r.add_argument("--acceptance-noise", nargs=3, metavar=("FP", "FN", "DELAY"), default=None,
                    help="train on a noisy acceptance sensor: false-positive rate per step, "
                         "false-negative rate, delay in steps (evaluation keeps true acceptance)")

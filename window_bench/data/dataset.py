@@ -15,7 +15,8 @@ Layout of one episode in the Minari dataset (``T`` steps):
   reset; Minari stores them as UTF-8 and hands them back as ``bytes``), ``time_s`` (float,
   start time of the step, ``-0.1`` at reset), ``chunk_index`` (int64, ``-1`` at reset),
   ``policy_chunk_start`` and the stage flags ``suction_acquired`` / ``insertion_entered`` /
-  ``seated`` (bool, False at reset).
+  ``seated`` (bool, False at reset); where the log records them, ``meant_action`` ((T+1, 7)
+  float32, zeros at reset: the command meant before the hand's noise).
 * Episode-level attributes: ``seed`` (Minari's own) and ``options/episode_id``,
   ``options/env_id``, ``options/chunk_horizon``, ``options/operator`` and
   ``options/randomization`` (a JSON string of the Table 9 draws).
@@ -256,6 +257,9 @@ def _to_buffer(ep: EpisodeLog):
     }
     for j, name in enumerate(STAGE_FLAGS):
         infos[name] = np.concatenate([[False], ep.stage_flags[:, j]]).astype(bool)
+    if ep.meant_actions is not None:
+        infos["meant_action"] = np.concatenate([np.zeros((1, ACTION_DIM), np.float32),
+                                                ep.meant_actions]).astype(np.float32)
     return EpisodeBuffer(
         seed=int(ep.seed),
         options={"episode_id": int(ep.episode_id), "env_id": str(ep.env_id),
@@ -484,6 +488,13 @@ def load_episodes(dataset_id: str, data_path: str | os.PathLike | None = None
             v = options.get(key, "")
             return v.decode("utf-8") if isinstance(v, (bytes, np.bytes_)) else str(v)
 
+        meant = infos.get("meant_action")
+        if meant is not None:
+            meant = np.asarray(meant)
+            if meant.shape != (T + 1, ACTION_DIM) or meant.dtype != np.float32:
+                raise ValueError(f"{where}: infos['meant_action'] is {meant.dtype} "
+                                 f"{meant.shape}, expected float32 {(T + 1, ACTION_DIM)}")
+            meant = meant[1:]
         env_id = text("env_id")
         try:
             randomization = json.loads(text("randomization") or "{}")
@@ -508,6 +519,7 @@ def load_episodes(dataset_id: str, data_path: str | os.PathLike | None = None
                                  axis=1),
             randomization=randomization,
             operator=text("operator"),
+            meant_actions=meant,
         )
         try:
             ep.validate()

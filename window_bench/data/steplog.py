@@ -22,6 +22,9 @@ Conventions:
   ``policy_chunk_start[t]`` is True where the policy proposed a new chunk (only on grid
   boundaries, and only on ``"policy"`` steps). ``stage_flags[t]`` holds the cumulative stage
   events of :data:`STAGE_FLAGS` after step ``t``.
+* ``meant_actions`` (optional, T rows like ``actions``): the command the demonstrator or the
+  installer meant at each step, before its hand's noise (the executed action on the policy's
+  steps); ``None`` where the log does not record it. ``actions`` stays the executed record.
 * Per episode: ``env_id``, ``seed``, ``randomization`` (Table 9 values drawn at reset),
   ``operator`` (the operator profile that produced demos/takeovers, ``""`` if none) and
   ``chunk_horizon``.
@@ -32,7 +35,7 @@ grid, policy chunk starts on every ``"policy"`` step, stage flags all False).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -73,6 +76,7 @@ class EpisodeLog:
     stage_flags: np.ndarray | None = None  # (T, 3) bool, STAGE_FLAGS order
     randomization: dict = field(default_factory=dict)
     operator: str = ""
+    meant_actions: np.ndarray | None = None  # (T, 7) float32, before the hand's noise
 
     def __post_init__(self):
         self.observations = np.asarray(self.observations, dtype=np.float32)
@@ -100,6 +104,8 @@ class EpisodeLog:
         self.policy_chunk_start = np.asarray(self.policy_chunk_start)
         self.stage_flags = np.asarray(self.stage_flags)
         self.randomization = dict(self.randomization or {})
+        if self.meant_actions is not None:
+            self.meant_actions = np.asarray(self.meant_actions, dtype=np.float32)
 
     # ------------------------------------------------------------------ derived
     @property
@@ -161,6 +167,15 @@ class EpisodeLog:
         if obs.shape[0] != T + 1:
             raise ValueError(f"EpisodeLog.observations: expected T+1 = {T + 1} rows "
                              f"(s_0..s_T), got {obs.shape[0]}")
+
+        meant = self.meant_actions
+        if meant is not None:
+            if np.shape(meant) != act.shape:
+                raise ValueError(f"EpisodeLog.meant_actions: expected shape {act.shape} like "
+                                 f"actions, got {np.shape(meant)}")
+            if not np.isfinite(meant).all() or np.abs(meant).max() > 1.0:
+                raise ValueError("EpisodeLog.meant_actions: values must be finite and in "
+                                 f"[-1, 1]^{ACTION_DIM}")
 
         # --- values
         for name, arr in (("observations", obs), ("actions", act), ("rewards", rew)):
@@ -275,4 +290,34 @@ def without_noops(ep: EpisodeLog, before: str | None = None) -> EpisodeLog:
         truncated=ep.truncated[idx], provenance=ep.provenance[idx],
         takeover_kind=ep.takeover_kind[idx], episode_id=ep.episode_id, env_id=ep.env_id,
         seed=ep.seed, chunk_horizon=ep.chunk_horizon, stage_flags=ep.stage_flags[idx],
-        randomization=dict(ep.randomization), operator=ep.operator)
+        randomization=dict(ep.randomization), operator=ep.operator,
+        meant_actions=None if ep.meant_actions is None else ep.meant_actions[idx])
+
+
+#: What a learner may train on as D_demo's actions (``--demo-actions``).
+DEMO_ACTIONS = ("executed", "meant")
+
+
+def check_demo_actions(which) -> str:
+    """``which`` if it is one of :data:`DEMO_ACTIONS`, else a one-line ``ValueError``."""
+    if which not in DEMO_ACTIONS:
+        raise ValueError(f"--demo-actions {which!r}; allowed: {', '.join(DEMO_ACTIONS)}")
+    return which
+
+
+def demo_actions(episodes: list[EpisodeLog], which: str) -> list[EpisodeLog]:
+    """The demonstrations a learner trains on: as recorded (``"executed"``, the paper's
+    ``a_t``), or with each step's action replaced by the command the demonstrator meant
+    (``"meant"``: the same step without the hand's noise, as DART labels noisy
+    demonstrations; Laskey et al. 2017). The observations stay the executed trajectory's.
+    A log without meant actions is a one-line ``ValueError``."""
+    if check_demo_actions(which) == "executed":
+        return list(episodes)
+    out = []
+    for ep in episodes:
+        if ep.meant_actions is None:
+            raise ValueError(f"demonstration {ep.episode_id} (seed {ep.seed}) records no meant "
+                             f"actions: collect the demonstrations again (bench demos) to "
+                             f"train on them")
+        out.append(replace(ep, actions=ep.meant_actions.copy()))
+    return out

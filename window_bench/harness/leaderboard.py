@@ -66,8 +66,9 @@ def _operator(results: dict) -> str | None:
 
 def run_dest(results: dict, root: str | os.PathLike) -> Path:
     """``root/<env>/<method>[-h<h>]<overrides>[-<track>][-readout<sha>][-<operator>]
-    [-best-dev]-<profile>-s<seed>``, checked to stay inside ``root``: a run with another
-    chunk horizon, track, pose read-out, operator profile or final checkpoint never lands on
+    [-best-dev][-meant]-<profile>-s<seed>``, checked to stay inside ``root``: a run with another
+    chunk horizon, track, pose read-out, operator profile, final checkpoint or demo actions
+    never lands on
     the default run of the same method and seed (named as ``bench sweep`` names its cells)."""
     method = results["method"]["name"]
     h, operator = _own_h(results), _operator(results)
@@ -81,6 +82,7 @@ def run_dest(results: dict, root: str | os.PathLike) -> Path:
         tag += f"-{operator}"
     choice = (results.get("final_eval") or {}).get("checkpoint", "last")
     tag += "" if choice == "last" else f"-{choice}"     # --final-checkpoint best-dev
+    tag += "-meant" if results.get("demo_actions") == "meant" else ""    # --demo-actions
     name = f"{method}{tag}-{results['profile']['name']}-s{results['seed']}"
     dest = Path(root) / results["env_id"] / name
     if not SAFE_NAME.match(name) or not dest.resolve().is_relative_to(Path(root).resolve()):
@@ -159,6 +161,8 @@ def table(results: list[dict]) -> str:
         extra = "".join(f", {k}={v}" for k, v in (r.get("agent_config_overrides") or {}).items())
         if _operator(r) is not None:
             extra += f", operator {md_text(_operator(r))}"
+        if r.get("demo_actions") == "meant":
+            extra += ", meant demo actions"
         if _pose_readout(r) is not None:
             extra += f", pose read-out {_pose_readout(r)}"
         who = (f"| {_track(r)} | {r['env_id']} | {md_text(m['label'])} (`{m['name']}`{h}"

@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 import window_bench
-from window_bench.data.steplog import STEP_DT
+from window_bench.data.steplog import STEP_DT, check_demo_actions, demo_actions as labelled
 from window_bench.harness.agent import check_agent_config, make_agent, takeover_segments
 from window_bench.harness.evaluation import (FINAL_EVAL_KEYS, AgentPolicy, Evaluator,
                                              atomic_write_text, evaluate_policy_file, provenance,
@@ -95,7 +95,7 @@ class Run:
                  agent_config: dict | None = None, h: int | None = None,
                  final_episodes: int | None = None, final_seed_set: str = "dev",
                  final_checkpoint: str = "last", stage1_cache: str | os.PathLike | None = None,
-                 eval_workers: int | None = None,
+                 eval_workers: int | None = None, demo_actions: str = "executed",
                  pixel_demos_cache: str | os.PathLike | None = None):
         self.method = get_method(method)
         if h is not None:    # Tables 5/6: replay, agent and chunking all follow method.h
@@ -128,6 +128,7 @@ class Run:
         if env_id not in window_bench.ENV_IDS:
             raise ValueError(f"unknown env {env_id!r}; registered: {', '.join(window_bench.ENV_IDS)}")
         get_operator(operator)
+        self.demo_actions = check_demo_actions(demo_actions)
         if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
             raise ValueError(f"--seed {seed!r}; allowed: an integer in 0..{MAX_SEED}")
         self.env_id, self.seed, self.operator = env_id, seed, operator
@@ -154,11 +155,12 @@ class Run:
         # Demos elsewhere that exist are read now: one that cannot be read stops the run
         # before any file. The run's own demos are read once checked against its manifest.
         self._raw_demos = None if self._own_demos else self._raw_demo_episodes(collect=False)
+        labelled(self._raw_demos or [], self.demo_actions)   # they record what is asked
         self.files = RunDir(self.out, {
             "method": self.method.name, "env_id": self.env_id, "profile": self.profile.name,
             "seed": self.seed, "operator": self.operator, "track": self.track, "h": self.method.h,
-            "acceptance_noise": self.acceptance_noise, "agent_config": self.agent_config},
-            resume)
+            "acceptance_noise": self.acceptance_noise, "agent_config": self.agent_config,
+            **({"demo_actions": demo_actions} if demo_actions != "executed" else {})}, resume)
         if self._own_demos:
             from window_bench.installer.demos import demo_dataset_path
 
@@ -212,7 +214,7 @@ class Run:
         if eps is None:
             eps = self._raw_demos = self._raw_demo_episodes(collect=True)
         if self._observed_demos is None:   # once per Run: a track may render and encode
-            self._observed_demos = self._observe_demos(eps)
+            self._observed_demos = labelled(self._observe_demos(eps), self.demo_actions)
         return self._observed_demos
 
     def _observe_demos(self, eps: list) -> list:
@@ -569,10 +571,9 @@ class Run:
         results = {
             "schema_version": RESULTS_SCHEMA, "method": self.method.as_dict(),
             "env_id": self.env_id, "profile": self.profile.as_dict(), "seed": self.seed,
-            "track": self.track, "encoder": self.encoder,
-            "operator": self.operator,
+            "track": self.track, "encoder": self.encoder, "operator": self.operator,
             "operator_profile": get_operator(self.operator).as_dict(),   # its cues, as run
-            "acceptance_noise": self.acceptance_noise,
+            "acceptance_noise": self.acceptance_noise, "demo_actions": self.demo_actions,
             "agent_config_overrides": self.agent_config,
             "hyperparameters": self.agent.hyperparameters(),
             "final": {"success_rate": final["success_rate"], "wilson95": final["wilson95"],
@@ -588,8 +589,7 @@ class Run:
             "train_episodes": self.c["episodes"],
             "eval_seed_set": "dev",                             # the checkpoints' seeds
             "eval_seeds": [EVAL_SEED0, EVAL_SEED0 + self.profile.eval_episodes - 1],
-            "final_eval": final_eval,
-            "stage1": self.c.get("stage1"),
+            "final_eval": final_eval, "stage1": self.c.get("stage1"),
             "pixel_demos": self.c.get("pixel_demos"),     # a track's re-observed demos
             "provenance": provenance(),                          # when the results were written
             "provenance_start": self.c.get("provenance_start"),  # the code the run started on

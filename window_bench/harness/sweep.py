@@ -72,9 +72,10 @@ from window_bench.harness.schemas import FIELD_NAME, POLICY_FILE, SAFE_NAME, rea
 from window_bench.harness.seeds import SEED_SETS
 from window_bench.harness.tracks import DEFAULT_TRACK, TRACKS, get_track
 from window_bench.installer.operators import DEFAULT_OPERATOR, OPERATORS
+from window_bench.data.steplog import DEMO_ACTIONS
 
 GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "eval_workers",
-             "final_checkpoint", "track", "train", "evaluate"}
+             "final_checkpoint", "track", "demo_actions", "train", "evaluate"}
 TRAIN_KEYS = {"methods", "envs", "seeds", "h", "agent_config"}
 EVALUATE_KEYS = {"method", "env", "seeds", "on", "h", "agent_config"}
 MAX_GRID_BYTES = 1 << 20
@@ -101,6 +102,7 @@ class Cell:
     track: str = DEFAULT_TRACK                 # observation track (harness/tracks.py)
     operator: str = DEFAULT_OPERATOR           # the grid's operator profile
     final_checkpoint: str = "last"             # the grid's (harness/results.py)
+    demo_actions: str = "executed"             # the grid's (bench run --demo-actions)
 
     @property
     def train_cell(self) -> "Cell":
@@ -114,6 +116,7 @@ class Cell:
         tag += "" if self.track == DEFAULT_TRACK else f"-{self.track}"   # as bench leaderboard does
         tag += "" if self.operator == DEFAULT_OPERATOR else f"-{self.operator}"
         tag += "" if self.final_checkpoint == "last" else f"-{self.final_checkpoint}"
+        tag += "" if self.demo_actions == "executed" else f"-{self.demo_actions}"
         return f"{self.on or self.env_id}/{self.method}{tag}-{self.profile}-s{self.seed}"
 
     def path(self, out: Path) -> Path:
@@ -198,6 +201,9 @@ def load_grid(path: str | os.PathLike) -> Grid:
     operator = doc.get("operator", DEFAULT_OPERATOR)
     if operator not in OPERATORS:
         _fail(path, f"operator = {operator!r}; allowed: {', '.join(sorted(OPERATORS))}")
+    demo_actions = doc.get("demo_actions", "executed")
+    if demo_actions not in DEMO_ACTIONS:
+        _fail(path, f"demo_actions = {demo_actions!r}; allowed: {', '.join(DEMO_ACTIONS)}")
     track = doc.get("track", DEFAULT_TRACK)
     if track not in TRACKS:
         _fail(path, f"track = {track!r}; allowed: {', '.join(TRACKS)}")
@@ -306,7 +312,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
         for m, h, e, s in itertools.product(methods, hs, envs, seeds):
             cells.append(Cell(m, e, s, profile, h if h != get_method(m).h else None, cfg,
                               track=track, operator=operator,
-                              final_checkpoint=final_checkpoint))
+                              final_checkpoint=final_checkpoint, demo_actions=demo_actions))
     for i, spec in enumerate(doc.get("evaluate", [])):
         block = f"evaluate[{i}]"
         if set(spec) - EVALUATE_KEYS:
@@ -324,7 +330,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
             cells.append(Cell(method, spec["env"], s, profile,
                               h if h != get_method(method).h else None, cfg, on=target,
                               track=track, operator=operator,
-                              final_checkpoint=final_checkpoint))
+                              final_checkpoint=final_checkpoint, demo_actions=demo_actions))
     if not cells:
         _fail(path, "declares no cells (add a [[train]] or [[evaluate]] block)")
     unique = tuple(dict.fromkeys(cells))
@@ -545,6 +551,8 @@ def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool,
                     "--demos", str(demos_dir(cell, grid, out)),
                     "--final-episodes", str(grid.M), "--final-seed-set", grid.seed_set]
     argv += _eval_workers(grid)
+    if cell.demo_actions != "executed":
+        argv += ["--demo-actions", cell.demo_actions]
     if cell.final_checkpoint != "last":
         argv += ["--final-checkpoint", cell.final_checkpoint]
     if stage1_cache:

@@ -105,11 +105,13 @@ def _final(r: dict) -> tuple[dict, str, int]:
 def _overrides(r: dict) -> tuple:
     """A row's departures from the method's defaults: its agent-config overrides and, when
     its demonstrations and takeovers came from another operator profile than the paper's
-    `average`, that profile; and a final checkpoint chosen on the dev seeds (cells that
+    `average`, that profile; learners trained on the demonstrator's meant actions; and a final checkpoint chosen on the dev seeds (cells that
     differ in any never share a row)."""
     pairs = dict(r.get("agent_config_overrides") or {})
     if r.get("operator", "average") != "average":
         pairs["operator"] = r["operator"]
+    if r.get("demo_actions", "executed") != "executed":
+        pairs["demo_actions"] = r["demo_actions"]
     if (r.get("final_eval") or {}).get("checkpoint", "last") != "last":
         pairs["final_checkpoint"] = r["final_eval"]["checkpoint"]
     return tuple(sorted((k, json.dumps(v)) for k, v in pairs.items()))

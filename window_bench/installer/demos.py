@@ -64,6 +64,7 @@ def _save_partial(path: Path, log: EpisodeLog, row: dict) -> None:
              terminated=log.terminated, truncated=log.truncated, provenance=log.provenance,
              takeover_kind=log.takeover_kind, policy_chunk_start=log.policy_chunk_start,
              stage_flags=log.stage_flags, row=json.dumps(row),
+             **({} if log.meant_actions is None else {"meant_actions": log.meant_actions}),
              randomization=json.dumps(log.randomization))
     os.replace(tmp, path)
 
@@ -95,7 +96,8 @@ def _read_partial(path: Path, env_id: str, operator: str) -> tuple[EpisodeLog | 
                          env_id=env_id, seed=row["seed"],
                          policy_chunk_start=z["policy_chunk_start"],
                          stage_flags=z["stage_flags"],
-                         randomization=json.loads(str(z["randomization"])), operator=operator)
+                         randomization=json.loads(str(z["randomization"])), operator=operator,
+                         meant_actions=z["meant_actions"] if "meant_actions" in z else None)
     log.validate()
     return log, row
 

@@ -224,7 +224,10 @@ class HumanlikeInstaller:
     """The scripted installer demonstrating with a human operator's hands (module docstring).
 
     ``act(obs) -> (7,)`` like every controller; ``reset(seed)`` redraws the eye error, the
-    noise and the hesitations, so the same seed gives the same demonstration.
+    noise and the hesitations, so the same seed gives the same demonstration. After each
+    ``act``, ``meant_action`` is the command the operator meant: the same step without the
+    hand's noise (:class:`~window_bench.installer.rollout.Rollout` logs it beside the executed
+    action; ``--demo-actions meant`` trains on it).
     """
 
     def __init__(self, env, operator: str | OperatorProfile = "average", seed: int | None = None):
@@ -253,12 +256,14 @@ class HumanlikeInstaller:
         self.pause = 0
         self.vacuum = ENGAGE if self.env.suction_engaged else RELEASE
         self.hesitations = 0
+        self.meant_action = None
 
     def act(self, obs=None) -> np.ndarray:
         p = self.profile
         if self.pause > 0:
             self.pause -= 1
-            return np.array([0, 0, 0, 0, 0, 0, self.vacuum], dtype=np.float32)
+            self.meant_action = np.array([0, 0, 0, 0, 0, 0, self.vacuum], dtype=np.float32)
+            return self.meant_action.copy()
         phase = self.installer.phase
         a = self.installer.act(obs).astype(np.float64)
         changed = phase is not None and self.installer.phase != phase
@@ -267,6 +272,8 @@ class HumanlikeInstaller:
             self.hesitations += 1
         # Careful hands near contact: a fifth of the tremor once the panel is being aligned.
         scale = FINE_NOISE_SCALE if self.installer.phase in FINE_PHASES else 1.0
-        a[:6] = np.clip(a[:6] * p.demo_speed + scale * self.noise(), -1.0, 1.0)
+        a[:6] = a[:6] * p.demo_speed
+        self.meant_action = np.clip(a, -1.0, 1.0).astype(np.float32)
+        a[:6] = np.clip(a[:6] + scale * self.noise(), -1.0, 1.0)
         self.vacuum = a[6]
         return a.astype(np.float32)

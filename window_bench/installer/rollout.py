@@ -10,7 +10,10 @@ interleave gradient updates with environment steps. It implements the paper's co
   queue. When it hands back mid-chunk, the operator holds the robot still (zero motion, the
   vacuum as last commanded) until the next grid boundary, still logged as takeover; the
   policy then proposes a fresh chunk from the observation at that boundary;
-* every executed action is logged with its provenance in an :class:`EpisodeLog`.
+* every executed action is logged with its provenance in an :class:`EpisodeLog`; where the
+  demonstrator or the takeover source says what it meant (``meant_action``: the command
+  before the hand's noise), that is logged too (``EpisodeLog.meant_actions``; the executed
+  action elsewhere).
 
 A *policy* is anything with ``act(obs) -> array`` of shape ``(h, 7)`` (a chunk) or ``(7,)``
 (one action, ``h = 1``), an optional attribute ``h`` (default 1) and an optional
@@ -66,6 +69,7 @@ class Rollout:
         self.done = False
         self._obs = [self._vector(obs)]
         self._act, self._rew, self._prov, self._kind, self._start, self._stages = [], [], [], [], [], []
+        self._meant = []
         self._randomization = dict(info.get("randomization", {}) or
                                    getattr(self.env.unwrapped, "_randomization", {}))
         self.terminated = self.truncated = False
@@ -107,21 +111,26 @@ class Rollout:
             self.queue.clear()
             self.in_takeover = kind
             prov = "takeover"
+            meant = getattr(self.supervisor, "meant_action", None)
         elif self.in_takeover and t % h != 0:
             # Handed back mid-chunk: hold still until the policy's next grid boundary.
             action = np.array([0, 0, 0, 0, 0, 0, self.last_vacuum], dtype=np.float32)
-            kind, prov = self.in_takeover, "takeover"
+            kind, prov, meant = self.in_takeover, "takeover", None
         else:
             self.in_takeover = ""
             if not self.queue:
                 self._propose()
                 starts = True
             action, kind, prov = self.queue.popleft(), "", self.provenance
+            # A one-step demonstrator says what it meant; a chunk's steps mean what they are.
+            meant = getattr(self.policy, "meant_action", None) if starts and self.h == 1 else None
         action = np.clip(np.asarray(action, dtype=np.float32), -1.0, 1.0)
         obs, reward, terminated, truncated, info = self.env.step(action)
         self.last_vacuum = float(action[6])
         self._obs.append(self._vector(obs))
         self._act.append(action)
+        self._meant.append(action if meant is None else
+                           np.clip(np.asarray(meant, dtype=np.float32), -1.0, 1.0))
         self._rew.append(float(reward))
         self._prov.append(prov)
         self._kind.append(kind)
@@ -144,6 +153,7 @@ class Rollout:
         (term if self.terminated else trunc)[-1] = True
         log = EpisodeLog(
             observations=np.stack(self._obs), actions=np.stack(self._act),
+            meant_actions=np.stack(self._meant),
             rewards=np.asarray(self._rew, np.float32), terminated=term, truncated=trunc,
             provenance=np.asarray(self._prov), takeover_kind=np.asarray(self._kind),
             episode_id=self.episode_id, env_id=self.env_id, seed=self.seed,

@@ -412,5 +412,6 @@ class InstallerSupervisor:
         self.steps_in += 1
         a = self.installer.act(obs).astype(np.float64)
         steady = self.profile.steady_near_contact and self.installer.phase in FINE_PHASES
+        self.meant_action = np.clip(a, -1.0, 1.0).astype(np.float32)   # before the hand's noise
         a[:6] = np.clip(a[:6] + (FINE_NOISE_SCALE if steady else 1.0) * self.noise(), -1.0, 1.0)
         return a.astype(np.float32), self.active
