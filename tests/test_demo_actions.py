@@ -179,3 +179,16 @@ def test_meant_actions_survive_the_dataset_and_old_datasets_load_without(tmp_pat
                 assert b.meant_actions is None
             else:
                 np.testing.assert_array_equal(a.meant_actions, b.meant_actions)
+
+
+def test_a_dataset_mixing_logs_with_and_without_meant_actions_stores_none(tmp_path, demos):
+    """A collection resumed across the field's introduction: one set of info keys."""
+    from window_bench.data.dataset import load_episodes, save_episodes
+
+    _, eps = demos
+    mixed = [eps[0], type(eps[1])(**{**eps[1].__dict__, "meant_actions": None})]
+    save_episodes(mixed, "wb/mixed-v0", env_id=ENV, obs_dim=eps[0].observations.shape[1],
+                  data_path=tmp_path)
+    back = load_episodes("wb/mixed-v0", data_path=tmp_path)
+    assert [b.meant_actions for b in back] == [None, None]
+    np.testing.assert_array_equal(back[0].actions, eps[0].actions)

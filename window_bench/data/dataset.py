@@ -243,7 +243,7 @@ def _check_episode(i: int, ep: EpisodeLog, obs_dim: int) -> None:
         raise ValueError(f"episode {i}: env_id must be a str, got {ep.env_id!r}")
 
 
-def _to_buffer(ep: EpisodeLog):
+def _to_buffer(ep: EpisodeLog, meant: bool):
     from minari.data_collector import EpisodeBuffer
 
     T = ep.T
@@ -257,7 +257,7 @@ def _to_buffer(ep: EpisodeLog):
     }
     for j, name in enumerate(STAGE_FLAGS):
         infos[name] = np.concatenate([[False], ep.stage_flags[:, j]]).astype(bool)
-    if ep.meant_actions is not None:
+    if meant:
         infos["meant_action"] = np.concatenate([np.zeros((1, ACTION_DIM), np.float32),
                                                 ep.meant_actions]).astype(np.float32)
     return EpisodeBuffer(
@@ -316,6 +316,8 @@ def save_episodes(episodes: list[EpisodeLog], dataset_id: str, *, env_id: str, o
 
     env_kwargs = {"obs_mode": "flat"} if env_kwargs is None else dict(env_kwargs)
     commit = git_commit()
+    # Minari keeps one set of info keys: meant actions only where every episode has them.
+    meant = all(ep.meant_actions is not None for ep in episodes)
     with _datasets_root(data_path):
         from minari.storage.datasets_root_dir import get_dataset_path
 
@@ -333,7 +335,7 @@ def save_episodes(episodes: list[EpisodeLog], dataset_id: str, *, env_id: str, o
                 warnings.simplefilter("ignore")  # Minari nags about unset optional fields
                 minari.create_dataset_from_buffers(
                     dataset_id=tmp_id,
-                    buffer=[_to_buffer(ep) for ep in episodes],
+                    buffer=[_to_buffer(ep, meant) for ep in episodes],
                     env=env,
                     observation_space=obs_space,
                     action_space=act_space,
