@@ -1,7 +1,9 @@
 r"""Where do a policy's failed episodes end? Roll a frozen policy on the development seeds
 (no takeovers) and report, per episode, the outcome, the panel's deepest and final depth
-relative to the seat, its final lateral offset and tilt, and the mean |motion command| of
-its last 10 steps (a policy that stops moving has a value near 0).
+relative to the seat, its final lateral offset and tilt, the mean |motion command| of
+its last 10 steps (a policy that stops moving has a value near 0), and where it stood when
+it first reached the seating depth: its lateral offset and the distance of its centre from
+the seated target (acceptance needs < 2 mm), and how many times it reached that depth.
 
     python experiments/sanity/failure_trace.py POLICY --env WindowInstall-A-v0 \
         --episodes 20 --out experiments/sanity/results/failure_trace_act_fine_pose_A_s0.json
@@ -19,6 +21,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from rollout_args import env_errors, episodes_errors, out_errors  # noqa: E402
+
+
+#: Within this of the seating depth (mm) the panel is at the stop.
+STOP_MM = 0.05
 
 
 def main(argv=None) -> int:
@@ -57,6 +63,10 @@ def main(argv=None) -> int:
         depth = rel @ S.INSERTION_AXIS
         lateral = rel[-1] - depth[-1] * S.INSERTION_AXIS
         ok = bool(log.terminated[-1])
+        stop = depth >= -STOP_MM / 1000
+        at_stop = np.flatnonzero(stop)
+        first = rel[at_stop[0]] - depth[at_stop[0]] * S.INSERTION_AXIS if at_stop.size else None
+        reached = int(np.sum(stop[1:] & ~stop[:-1]) + stop[0])
         row = {"seed": DEV_SEED0 + i, "success": ok, "steps": int(log.T),
                "failure_mode": "" if ok else (FAILURE_MODE_NAMES[rollout.info["failure_code"]]
                                               or "timeout"),
@@ -65,7 +75,12 @@ def main(argv=None) -> int:
                "final_lateral_mm": [round(float(lateral[0]) * 1000, 2),
                                     round(float(lateral[2]) * 1000, 2)],
                "final_tilt_deg": round(float(np.rad2deg(np.linalg.norm(rot[-1]))), 2),
-               "last10_motion": round(float(np.abs(log.actions[-10:, :6]).mean()), 4)}
+               "last10_motion": round(float(np.abs(log.actions[-10:, :6]).mean()), 4),
+               "at_stop_lateral_mm": None if first is None else
+               [round(float(first[0]) * 1000, 2), round(float(first[2]) * 1000, 2)],
+               "at_stop_centre_error_mm": None if first is None else
+               round(float(np.linalg.norm(rel[at_stop[0]])) * 1000, 2),
+               "times_at_stop": reached}
         rows.append(row)
         print(json.dumps(row), flush=True)
     env.close()
