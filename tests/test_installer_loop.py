@@ -469,7 +469,7 @@ def test_steady_hands_near_contact_let_a_takeover_seat(steady):
 
 # ---------------------------------------------------------------- profiles, demos
 def test_operator_profiles():
-    assert set(OPERATORS) == {"expert", "average", "novice", "attentive", "by-eye"}
+    assert set(OPERATORS) == {"expert", "average", "novice", "attentive", "by-eye", "flush"}
     by_eye = OPERATORS["by-eye"]
     assert (by_eye.coarse_align_error_mm, by_eye.coarse_align_error_deg) == (5.0, 2.0)
     assert dataclasses.replace(by_eye, name="average", coarse_align_error_mm=0.0,
@@ -486,6 +486,11 @@ def test_operator_profiles():
         get_operator("pro")
     with pytest.raises(ValueError, match=r"coverage_rate = 1.5 is outside \[0.0, 1.0\]"):
         OperatorProfile("x", coverage_rate=1.5)
+    with pytest.raises(ValueError, match=r"press_at_stop = 1 must be true or false"):
+        OperatorProfile("x", press_at_stop=1)
+    # flush is the average installer that presses a panel flat at the stop, nothing else
+    flush, average = OPERATORS["flush"].as_dict(), OPERATORS["average"].as_dict()
+    assert {k for k in flush if flush[k] != average[k]} == {"name", "press_at_stop"}
 
 
 def test_humanlike_demonstrator_is_seeded_and_not_the_script(env):

@@ -40,7 +40,9 @@ class OperatorProfile:
     then corrects after a close look (0: no by-eye placement); ``grasp_settle_steps`` (B) is how long the installer
     holds still once the cup latches before lifting (0: lifts at once); ``pick_error_mm`` (B)
     bounds how far from the face's centre, along each edge, the installer's cup lands when it
-    picks the panel up (0: at the centre).
+    picks the panel up (0: at the centre); ``press_at_stop`` (demonstrations and takeovers):
+    a panel whose edge meets the back stop first is pressed flat against it instead of
+    being backed off and reinserted (:class:`~window_bench.installer.scripted.ScriptedInstaller`).
 
     Takeovers: ``reaction_latency_steps`` between the cue and the takeover; trigger
     thresholds ``stall_steps`` (steps of blocked insertion), ``tilt_threshold_deg`` and
@@ -99,6 +101,7 @@ class OperatorProfile:
     suction_cue_in_opening: bool = True
     steady_near_contact: bool = False
     strain_threshold: float = 0.0
+    press_at_stop: bool = False
 
     def __post_init__(self):
         checks = {
@@ -133,7 +136,7 @@ class OperatorProfile:
                 raise ValueError(f"OperatorProfile {self.name!r}: {key} = {value!r} is outside "
                                  f"[{lo}, {hi}]")
         for key in ("seat_after_insertion_takeover", "suction_cue_in_opening",
-                    "steady_near_contact"):
+                    "steady_near_contact", "press_at_stop"):
             if not isinstance(getattr(self, key), bool):
                 raise ValueError(f"OperatorProfile {self.name!r}: {key} = "
                                  f"{getattr(self, key)!r} must be true or false")
@@ -172,6 +175,11 @@ OPERATORS: dict[str, OperatorProfile] = {
         # closely and corrects before inserting: its demonstrations show the correction where
         # the cameras (and a policy reading them) can see it (docs/pixels.md).
         OperatorProfile("by-eye", coarse_align_error_mm=5.0, coarse_align_error_deg=2.0),
+        # The average installer who, when the panel's edge meets the back stop first (its
+        # eye's tilt error), presses the panel flat against the stop instead of backing off
+        # and reinserting; its demonstrations then rarely turn back within millimetres of
+        # the seat (docs/results/diagnoses/a-seat.md).
+        OperatorProfile("flush", press_at_stop=True),
         OperatorProfile(
             "novice", demo_speed=0.45, motion_noise=0.08, hesitation_rate=0.02,
             phase_hesitation=0.8, hesitation_max_steps=10, align_error_mm=2.0,
@@ -238,7 +246,8 @@ class HumanlikeInstaller:
                                            grasp_settle_steps=p.grasp_settle_steps,
                                            coarse_align_error_mm=p.coarse_align_error_mm,
                                            coarse_align_error_deg=p.coarse_align_error_deg,
-                                           pick_error_mm=p.pick_error_mm)
+                                           pick_error_mm=p.pick_error_mm,
+                                           press_at_stop=p.press_at_stop)
         self.rng = np.random.default_rng(seed)
         self.noise = OUNoise(6, p.motion_noise, p.noise_tau_steps, self.rng)
         self.reset(seed)

@@ -71,11 +71,14 @@ class ScriptedInstaller(_PanelPoseMixin):
     STALL_PROGRESS = 0.25       # realized / commanded depth progress below this = stall
     RETRACT = 0.012
     MAX_RECOVERIES = 8
+    BIND_MOMENT = 0.3           # cup moment / holding limit that backs a bound panel off
+    PRESS_ZONE = 0.008          # ``press_at_stop``: this close to the stop the installer presses
+    PRESS_MOMENT = 0.9          # ... and backs off only at this fraction of the holding limit
 
     def __init__(self, env, align_error_mm: float = 1.0, align_error_deg: float = 0.5,
                  seed: int | None = None, grasp_settle_steps: int = 0,
                  coarse_align_error_mm: float = 0.0, coarse_align_error_deg: float = 0.0,
-                 pick_error_mm: float = 0.0):
+                 pick_error_mm: float = 0.0, press_at_stop: bool = False):
         """``align_error_*``: half-widths of a per-episode uniform error in the installer's
         estimate of where the seat is (lateral per axis, and rotation about each axis) - the
         accuracy of one visual alignment. Contact stalls reveal it: each recovery
@@ -89,7 +92,11 @@ class ScriptedInstaller(_PanelPoseMixin):
         ``pick_error_mm`` (B): half-width of a per-episode uniform offset, along each edge of
         the face, of where the cup lands on the panel (0: the face's centre); the transport
         and insertion measure the grip, so a demonstration carries the panel, not the tool,
-        to the seat whatever the offset."""
+        to the seat whatever the offset. ``press_at_stop``: within ``PRESS_ZONE`` of the stop,
+        a panel whose leading edge meets the stop first (tilted by the eye's error) is
+        pressed flat against it, not backed off: no stall check there, and the binding
+        check waits for ``PRESS_MOMENT`` of the cup's holding limit (``BIND_MOMENT``
+        elsewhere). False: it backs off, re-measures and reinserts."""
         if not 0 <= pick_error_mm <= 20:
             raise ValueError(f"pick_error_mm = {pick_error_mm!r} is outside [0, 20]")
         if min(align_error_mm, align_error_deg, coarse_align_error_mm, coarse_align_error_deg) < 0:
@@ -102,6 +109,7 @@ class ScriptedInstaller(_PanelPoseMixin):
         self.align_error = (align_error_mm / 1000.0, np.deg2rad(align_error_deg))
         self.coarse_align_error = (coarse_align_error_mm / 1000.0, np.deg2rad(coarse_align_error_deg))
         self.pick_error = pick_error_mm / 1000.0
+        self.press_at_stop = bool(press_at_stop)
         self.rng = np.random.default_rng(seed)
         self.reset()
 
@@ -296,10 +304,12 @@ class ScriptedInstaller(_PanelPoseMixin):
         # Binding felt through the grip (the installer's hands feel the panel twist in the
         # cup): back off before the seal peels.
         pull, shear, moment = self.env.suction_wrench()
-        if moment > 0.3 * VACUUM_HOLD_MOMENT and self.recoveries < self.MAX_RECOVERIES:
+        pressing = self.press_at_stop and depth >= -self.PRESS_ZONE
+        bind = self.PRESS_MOMENT if pressing else self.BIND_MOMENT
+        if moment > bind * VACUUM_HOLD_MOMENT and self.recoveries < self.MAX_RECOVERIES:
             return self._start_recovery(depth)
         # Stall: progress over the last few steps well below what was commanded.
-        if len(self.depth_hist) > self.STALL_WINDOW:
+        if len(self.depth_hist) > self.STALL_WINDOW and not pressing:
             progress = self.depth_hist[-1] - self.depth_hist[-1 - self.STALL_WINDOW]
             if progress < self.STALL_PROGRESS * self.SLOW_SPEED * self.STALL_WINDOW:
                 if self.recoveries < self.MAX_RECOVERIES:
@@ -350,7 +360,7 @@ class ScriptedInstaller(_PanelPoseMixin):
         """Hold the panel against the stop until the env accepts the seating; if it does not
         settle into acceptance (off-centre, tilted), back off and re-seat."""
         moment = self.env.suction_wrench()[2]
-        if ((self.phase_steps > 15 or moment > 0.3 * VACUUM_HOLD_MOMENT)
+        if ((self.phase_steps > 15 or moment > self.BIND_MOMENT * VACUUM_HOLD_MOMENT)
                 and self.recoveries < self.MAX_RECOVERIES):
             return self._start_recovery(self._depth())
         return self._seat_action()

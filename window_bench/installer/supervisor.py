@@ -237,7 +237,8 @@ class InstallerSupervisor:
         self.rng = np.random.default_rng([0 if seed is None else seed, 7])
         self.installer = ScriptedInstaller(self.env, p.align_error_mm, p.align_error_deg,
                                            seed=int(self.rng.integers(2**31)),
-                                           grasp_settle_steps=p.grasp_settle_steps)
+                                           grasp_settle_steps=p.grasp_settle_steps,
+                                           press_at_stop=p.press_at_stop)
         self.noise = OUNoise(6, p.recovery_noise, p.noise_tau_steps, self.rng)
         self.events = []
         self.t = -1
