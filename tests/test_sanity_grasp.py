@@ -3,6 +3,7 @@ is the env's engage quantity, and a policy that descends onto the panel with the
 is recorded as acquiring it within reach."""
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -165,3 +166,23 @@ def test_demo_label_noise_refuses_an_unknown_operator_before_writing(tmp_path, c
         d.main(["--operator", "nobody", "--episodes", "1", "--out", str(out)])
     assert e.value.code == 2 and not out.exists()
     assert "--operator 'nobody'" in capsys.readouterr().err
+
+
+def test_demo_turnbacks_refuses_bad_arguments_before_writing(tmp_path, capsys):
+    d = _script("demo_turnbacks")
+    out = tmp_path / "o.json"
+    for argv, msg in ((["--operators", "average", "nobody"], "--operators 'nobody'"),
+                      (["--near-mm", "0"], "--near-mm 0.0; allowed: (0, 50]")):
+        with pytest.raises(SystemExit) as e:
+            d.main([*argv, "--episodes", "1", "--out", str(out)])
+        assert e.value.code == 2 and not out.exists()
+        assert msg in capsys.readouterr().err
+
+
+def test_demo_turnbacks_records_each_recovery_of_a_demonstration(tmp_path):
+    d = _script("demo_turnbacks")
+    out = tmp_path / "o.json"
+    assert d.main(["--operators", "average", "--episodes", "2", "--out", str(out)]) == 0
+    row = json.loads(out.read_text())["operators"]["average"]
+    assert row["seated"] == 2 and row["recoveries"] >= row["recoveries_within_8mm_of_stop"]
+    assert row["of_which_turn_back_within_chunk"] <= row["near_steps_not_accepted_within_chunk"]
