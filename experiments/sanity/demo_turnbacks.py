@@ -26,7 +26,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from rollout_args import env_errors, episodes_errors, out_errors  # noqa: E402
 
 H = 10
-STOP_ZONE_MM = 8.0      # ScriptedInstaller.PRESS_ZONE
 
 
 def main(argv=None) -> int:
@@ -55,6 +54,7 @@ def main(argv=None) -> int:
     from window_bench.harness.evaluation import provenance
     from window_bench.installer.operators import HumanlikeInstaller
     from window_bench.installer.rollout import Rollout
+    from window_bench.installer.scripted import ScriptedInstaller
     from window_bench.installer.supervisor import FLAT_SLICES
 
     env = gym.make(args.env, obs_mode="flat")
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
                 if depth[t] >= -args.near_mm:
                     near += 1
                     turn += bool((log.meant_actions[t:t + H, 2] < -0.01).any())
-        at_stop = [s for s in starts if s[0] >= -STOP_ZONE_MM]
+        at_stop = [s for s in starts if s[0] >= -ScriptedInstaller.PRESS_ZONE * 1000.0]
         out["operators"][op] = {
             "seated": seated, "steps_mean": round(float(np.mean(steps)), 1),
             "recoveries": len(starts), "recoveries_within_8mm_of_stop": len(at_stop),
