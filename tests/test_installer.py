@@ -61,6 +61,28 @@ def test_press_at_stop_seats_instead_of_turning_back_at_the_stop(make_env):
     assert near["average"] >= 3 and near["flush"] <= near["average"] // 3, near
 
 
+def test_attentive_flush_demonstrates_as_flush_on_A(make_env):
+    # The attentive habits act at the pick (B) and in takeovers; on A, where the panel starts
+    # in the cup, attentive-flush's demonstrations are flush's, action for action.
+    from window_bench.installer.operators import HumanlikeInstaller
+
+    env = make_env(A, obs_mode="flat")
+    actions = {}
+    for op in ("flush", "attentive-flush"):
+        ctrl, actions[op] = HumanlikeInstaller(env, op), []
+        for seed in (1_000_000, 1_000_001):
+            obs, _ = env.reset(seed=seed)
+            ctrl.reset(seed=seed)
+            done = False
+            while not done:
+                a = ctrl.act(obs)
+                actions[op].append(a)
+                obs, _, term, trunc, _ = env.step(a)
+                done = term or trunc
+    assert len(actions["flush"]) > 300
+    assert np.array_equal(np.array(actions["flush"]), np.array(actions["attentive-flush"]))
+
+
 def test_straight_push_jams_where_the_installer_does_not():
     rows = evaluate(A, "straight_push", 12, seed=0, progress=False)
     s = summarize(rows)

@@ -469,7 +469,8 @@ def test_steady_hands_near_contact_let_a_takeover_seat(steady):
 
 # ---------------------------------------------------------------- profiles, demos
 def test_operator_profiles():
-    assert set(OPERATORS) == {"expert", "average", "novice", "attentive", "by-eye", "flush"}
+    assert set(OPERATORS) == {"expert", "average", "novice", "attentive", "by-eye", "flush",
+                              "attentive-flush"}
     by_eye = OPERATORS["by-eye"]
     assert (by_eye.coarse_align_error_mm, by_eye.coarse_align_error_deg) == (5.0, 2.0)
     assert dataclasses.replace(by_eye, name="average", coarse_align_error_mm=0.0,
@@ -491,6 +492,9 @@ def test_operator_profiles():
     # flush is the average installer that presses a panel flat at the stop, nothing else
     flush, average = OPERATORS["flush"].as_dict(), OPERATORS["average"].as_dict()
     assert {k for k in flush if flush[k] != average[k]} == {"name", "press_at_stop"}
+    # attentive-flush: the attentive installer that presses at the stop, nothing else
+    af, att = OPERATORS["attentive-flush"].as_dict(), OPERATORS["attentive"].as_dict()
+    assert {k for k in af if af[k] != att[k]} == {"name", "press_at_stop"}
 
 
 def test_humanlike_demonstrator_is_seeded_and_not_the_script(env):

@@ -374,7 +374,7 @@ def test_agent_config_values_are_checked_when_the_grid_is_loaded(tmp_path, line,
 
 @pytest.mark.parametrize("head, message", [
     ('name = "../../x"\n', "name = '../../x'; allowed: one file name"),
-    ('operator = "../../x"\n', "operator = '../../x'; allowed: attentive, average, by-eye, expert, flush, novice"),
+    ('operator = "../../x"\n', "operator = '../../x'; allowed: attentive, attentive-flush, average, by-eye, expert, flush, novice"),
     ("table = 9\n", "table = 9; allowed: an integer in 2..7"),
 ])
 def test_names_that_become_paths_are_checked(tmp_path, head, message):

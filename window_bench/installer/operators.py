@@ -145,6 +145,19 @@ class OperatorProfile:
         return dataclasses.asdict(self)
 
 
+#: The average installer with the habits the paper describes and the average profile lacks:
+#: waits for the cup to latch before lifting, takes over a failed acquisition, takes a wedged
+#: insertion through to the seat, and gives the policy a second at a blocked entry before
+#: calling it wedged or stalled (the paper's "prolonged non-progressing states"; on a 90 %
+#: policy this cuts takeovers of episodes it would finish alone from 8 to 3 of 36 and still
+#: catches all 4 failures, ``experiments/sanity/cue_precision.py``), and takes over a panel
+#: circling in front of the opening for 10 s; its hands steady near contact during a
+#: takeover, as they do when it demonstrates.
+ATTENTIVE = OperatorProfile(
+    "attentive", grasp_settle_steps=10, acquire_patience_steps=20,
+    seat_after_insertion_takeover=True, wedge_steps=10, stall_steps=10, patience_steps=150,
+    hover_steps=100, suction_cue_in_opening=False, steady_near_contact=True)
+
 #: The named profiles. ``average`` stands in for the paper's single installer.
 OPERATORS: dict[str, OperatorProfile] = {
     p.name: p for p in (
@@ -155,19 +168,7 @@ OPERATORS: dict[str, OperatorProfile] = {
             tilt_threshold_deg=0.5, lateral_threshold_mm=1.5, max_reinsertions=2,
             patience_steps=80, recovery_noise=0.02, coverage_rate=0.10),
         OperatorProfile("average"),
-        # The average installer with the habits the paper describes and the average profile
-        # lacks: waits for the cup to latch before lifting, takes over a failed acquisition,
-        # takes a wedged insertion through to the seat, and gives the policy a second at a
-        # blocked entry before calling it wedged or stalled (the paper's "prolonged
-        # non-progressing states"; on a 90 % policy this cuts takeovers of episodes it
-        # would finish alone from 8 to 3 of 36 and still catches all 4 failures,
-        # ``experiments/sanity/cue_precision.py``), and takes over a panel circling in front
-        # of the opening for 10 s; its hands steady near contact during a takeover, as they
-        # do when it demonstrates.
-        OperatorProfile("attentive", grasp_settle_steps=10, acquire_patience_steps=20,
-                        seat_after_insertion_takeover=True, wedge_steps=10, stall_steps=10,
-                        patience_steps=150, hover_steps=100, suction_cue_in_opening=False,
-                        steady_near_contact=True),
+        ATTENTIVE,
         # The average installer working as someone watching only the pixel track's seat
         # cameras would: they show the panel only once it is about 0.2 m from the seat, so
         # its offset in the cup (up to 5 mm and 2 degrees on A) is unseen in transport. It
@@ -180,6 +181,9 @@ OPERATORS: dict[str, OperatorProfile] = {
         # and reinserting; its demonstrations then rarely turn back within millimetres of
         # the seat (docs/results/diagnoses/a-seat.md).
         OperatorProfile("flush", press_at_stop=True),
+        # The attentive installer who also presses a panel flat against the stop (``flush``):
+        # on A its demonstrations are ``flush``'s, its takeovers ``attentive``'s.
+        dataclasses.replace(ATTENTIVE, name="attentive-flush", press_at_stop=True),
         OperatorProfile(
             "novice", demo_speed=0.45, motion_noise=0.08, hesitation_rate=0.02,
             phase_hesitation=0.8, hesitation_max_steps=10, align_error_mm=2.0,
