@@ -251,11 +251,12 @@ def _assert_same(a, b, path="state"):
         assert a == b, path
 
 
-@pytest.mark.parametrize("method", ["qcfql-no-intervention", "sac"])
+@pytest.mark.parametrize("method", ["qcfql-no-intervention", "qcfql", "sac"])
 def test_resume_after_a_kill_reproduces_the_run(tmp_path, demos_root, method):
     """Killed at 250 env steps (no state written after the last episode end) and resumed:
     the same checkpoints, training episodes and final agent state as a run never killed.
-    SB3 SAC resumes from its plain state_dict (networks, optimisers, replay arrays)."""
+    SB3 SAC resumes from its plain state_dict (networks, optimisers, replay arrays); the
+    installer supervisor from the count it carries between episodes."""
     def run(out, kill_at=None):
         r = Run(method, "WindowInstall-A-v0", "smoke", 3, out,
                 demos=demos_root, progress=False, save_every_s=0.0)
@@ -277,6 +278,8 @@ def test_resume_after_a_kill_reproduces_the_run(tmp_path, demos_root, method):
     b, _ = load_state(tmp_path / "killed" / "state.safetensors", "state")
     _assert_same(a["agent"], b["agent"])
     _assert_same(a["online_rb"], b["online_rb"])
+    assert a["counters"].get("supervisor") == b["counters"].get("supervisor")
+    assert ("supervisor" in a["counters"]) == (method == "qcfql")
     with pytest.raises(ValueError, match="seed = 3"):
         Run(method, "WindowInstall-A-v0", "smoke", 4, tmp_path / "killed",
             resume=True, demos=demos_root).train()

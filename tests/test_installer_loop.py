@@ -417,6 +417,31 @@ def test_safety_off_and_coverage(env):
     assert [e[2] for e in sup.events] == ["coverage"]
 
 
+def test_coverage_pauses_while_no_episode_needs_a_rescue(env):
+    # coverage_stop_after = 2: after two episodes in a row without a safety takeover the
+    # installer stops planning coverage interventions; a rescue starts the count again.
+    sup = InstallerSupervisor(_profile(coverage_rate=1.0, coverage_stop_after=2))
+    planned = []
+    for events in ([], [], [], [(5, "wedging", "safety")], [(3, "coverage", "coverage")], []):
+        sup.reset(env, seed=0)
+        planned.append(sup.coverage_planned)
+        sup.events = list(events)        # what the episode that follows would record
+    assert planned == [True, True, False, False, True, True]
+    assert sup.state_dict() == {"calm_episodes": 2}      # a coverage takeover is no rescue
+    # A resumed run restores the count; pausing draws the same random numbers.
+    paused, fresh = (InstallerSupervisor(_profile(coverage_rate=1.0, coverage_stop_after=2))
+                     for _ in range(2))
+    paused.load_state_dict({"calm_episodes": 2})
+    for sup in (paused, fresh):
+        sup.reset(env, seed=4)
+    assert (paused.coverage_planned, fresh.coverage_planned) == (False, True)
+    assert paused.rng.random() == fresh.rng.random()
+    with pytest.raises(ValueError, match=r"calm_episodes = -1: must be an integer >= 0"):
+        paused.load_state_dict({"calm_episodes": -1})
+    with pytest.raises(ValueError, match=r"coverage_stop_after = 1001 is outside \[0, 1000\]"):
+        OperatorProfile("x", coverage_stop_after=1001)
+
+
 def test_supervisor_rejects_other_observations(env):
     sup = InstallerSupervisor("average")
     sup.reset(env, seed=0)
@@ -494,7 +519,8 @@ def test_operator_profiles():
     assert {k for k in flush if flush[k] != average[k]} == {"name", "press_at_stop"}
     # attentive-flush: the attentive installer that presses at the stop, nothing else
     af, att = OPERATORS["attentive-flush"].as_dict(), OPERATORS["attentive"].as_dict()
-    assert {k for k in af if af[k] != att[k]} == {"name", "press_at_stop"}
+    assert {k for k in af if af[k] != att[k]} == {"name", "press_at_stop", "coverage_stop_after"}
+    assert {p.name for p in OPERATORS.values() if p.coverage_stop_after} == {"attentive-flush"}
 
 
 def test_humanlike_demonstrator_is_seeded_and_not_the_script(env):

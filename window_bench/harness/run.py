@@ -10,14 +10,11 @@ One run = one method on one env with one seed and one profile (:mod:`window_benc
   method has interventions, until ``profile.budget_steps`` environment steps (warm start
   included) have been used.
 
-Every ``profile.checkpoint_every`` environment steps (and once after Stage I) the policy is
-frozen and evaluated with interventions off over M seeded rollouts (the same seeds at every
-checkpoint and for every method), in parallel worker processes: success with a 95 % Wilson
-interval, cycle time over successes, stage-wise Pr(S), Pr(I|S), Pr(T|I) and the failure-mode
-histogram. Training metrics: running success and intervention rate over the last 20 training
-episodes, cumulative takeover minutes, and time-to-95 (the first checkpoint where raw success
->= 95 % holds for J = 3 consecutive checkpoints). Progress is reported in simulated hours
-(environment steps / 36,000) and in compute wall-clock.
+Every ``profile.checkpoint_every`` environment steps (and after Stage I) the frozen policy is
+evaluated without interventions on M seeded rollouts (the same seeds at every checkpoint, for
+every method), in worker processes: success (95 % Wilson interval), cycle time, Pr(S),
+Pr(I|S), Pr(T|I), failure modes; training success and intervention rate over the last 20
+episodes, takeover minutes, time-to-95 (raw success >= 95 % at J = 3 checkpoints in a row).
 
 Outputs in ``--out``: ``results.json`` (schema-versioned: method, env, profile, seed,
 hyperparameters, versions, git commit, every checkpoint), ``checkpoints.csv``,
@@ -430,6 +427,8 @@ class Run:
         budget = p.warm_steps if not m.online_updates else p.budget_steps
         sup = (self.observation.supervisor(InstallerSupervisor(self.operator))
                if m.interventions else None)
+        if sup is not None and "supervisor" in self.c:   # what it carries between episodes
+            sup.load_state_dict(self.c["supervisor"])
         with tqdm(total=budget, initial=self.c["env_steps"], desc="Stage II/III env", unit="step",
                   disable=not self.progress) as bar:
             while self.c["env_steps"] < budget:
@@ -462,6 +461,8 @@ class Run:
                         break
                 if rollout.done:
                     self._store_episode(rollout)
+                    if rollout.supervisor is not None:
+                        self.c["supervisor"] = rollout.supervisor.state_dict()
                 if time.perf_counter() - self._last_save > self.save_every_s or not rollout.done:
                     self._checkpoint_state()
         env.close()
@@ -507,8 +508,7 @@ class Run:
             "steps": log.T, "success": bool(rollout.info.get("is_success", log.terminated[-1])),
             "takeover_steps": int((log.provenance == "takeover").sum()),
             "takeovers": takeover_count(log),
-            # what triggered each takeover (supervisor cue: suction_lost, wedging, stall,
-            # reinsertion, no_progress, coverage), for the intervention-rate anatomy
+            # the supervisor cue of each takeover, for the intervention-rate anatomy
             "takeover_cues": [cue for _, cue, _ in getattr(rollout.supervisor, "events", ())]})
 
     def _checkpoint_state(self) -> None:

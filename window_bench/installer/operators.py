@@ -50,7 +50,10 @@ class OperatorProfile:
     ``max_reinsertions`` (entries into the opening before taking over), ``patience_steps``
     (steps without progress); ``recovery_noise`` (OU std on the takeover's motion commands);
     ``coverage_rate`` (probability per episode of one coverage intervention near the
-    opening); ``max_takeover_steps`` (hand back regardless after this long);
+    opening); ``coverage_stop_after`` (coverage interventions pause once this many episodes
+    in a row needed no safety takeover, and resume after one that does: the paper applies
+    them "sparingly", not to a policy that no longer needs rescuing; 0: never pause);
+    ``max_takeover_steps`` (hand back regardless after this long);
     ``acquire_patience_steps`` (B: the tool within reach of the free panel this many steps
     without a latch is a failed acquisition - a takeover that picks the panel up and hands
     back once it is lifted; 0: no such cue); ``hover_steps`` (the held panel this many steps
@@ -93,6 +96,7 @@ class OperatorProfile:
     patience_steps: int = 100
     recovery_noise: float = 0.05
     coverage_rate: float = 0.05
+    coverage_stop_after: int = 0
     max_takeover_steps: int = 200
     grasp_settle_steps: int = 0
     acquire_patience_steps: int = 0
@@ -125,6 +129,7 @@ class OperatorProfile:
             "patience_steps": (self.patience_steps, 1, 600),
             "recovery_noise": (self.recovery_noise, 0.0, 0.5),
             "coverage_rate": (self.coverage_rate, 0.0, 1.0),
+            "coverage_stop_after": (self.coverage_stop_after, 0, 1000),
             "max_takeover_steps": (self.max_takeover_steps, 1, 600),
             "grasp_settle_steps": (self.grasp_settle_steps, 0, 50),
             "acquire_patience_steps": (self.acquire_patience_steps, 0, 600),
@@ -181,9 +186,11 @@ OPERATORS: dict[str, OperatorProfile] = {
         # and reinserting; its demonstrations then rarely turn back within millimetres of
         # the seat (docs/results/diagnoses/a-seat.md).
         OperatorProfile("flush", press_at_stop=True),
-        # The attentive installer who also presses a panel flat against the stop (``flush``):
-        # on A its demonstrations are ``flush``'s, its takeovers ``attentive``'s.
-        dataclasses.replace(ATTENTIVE, name="attentive-flush", press_at_stop=True),
+        # The attentive installer who also presses a panel flat against the stop (``flush``)
+        # and stops its coverage interventions once 10 episodes in a row needed no rescue: on
+        # A its demonstrations are ``flush``'s, its takeovers ``attentive``'s.
+        dataclasses.replace(ATTENTIVE, name="attentive-flush", press_at_stop=True,
+                            coverage_stop_after=10),
         OperatorProfile(
             "novice", demo_speed=0.45, motion_noise=0.08, hesitation_rate=0.02,
             phase_hesitation=0.8, hesitation_max_steps=10, align_error_mm=2.0,

@@ -60,7 +60,9 @@ data shows the whole recovery of what failed. Coverage interventions happen at m
 per episode, with probability ``coverage_rate``: when the panel is held near the opening, the
 installer inserts with a deliberately coarse eye (mild misalignment) until it has been
 through one contact recovery or reached the seat, exposing recovery behaviour that
-autonomous exploration rarely reaches. Every trigger is recorded in :attr:`events`.
+autonomous exploration rarely reaches; with the operator's ``coverage_stop_after`` they pause
+once that many episodes in a row needed no safety takeover (:meth:`state_dict` carries the
+count across a resumed run). Every trigger is recorded in :attr:`events`.
 """
 
 from __future__ import annotations
@@ -229,10 +231,16 @@ class InstallerSupervisor:
         self.safety, self.coverage = bool(safety), bool(coverage)
         self.events: list[tuple[int, str, str]] = []   # (step, cue, kind) per takeover
         self.env = None
+        # Episodes in a row that needed no safety takeover (``coverage_stop_after``); the
+        # episode that just ran is counted at the next reset.
+        self.calm_episodes = 0
+        self._count_last = False
 
     # ------------------------------------------------------------------ episode
     def reset(self, env, seed: int | None = None) -> None:
         p = self.profile
+        self.calm_episodes = self.state_dict()["calm_episodes"]
+        self._count_last = True
         self.env = env.unwrapped
         self.rng = np.random.default_rng([0 if seed is None else seed, 7])
         self.installer = ScriptedInstaller(self.env, p.align_error_mm, p.align_error_deg,
@@ -245,8 +253,26 @@ class InstallerSupervisor:
         self.active: str | None = None      # kind of the running takeover
         self.active_cue: str | None = None
         self.pending: tuple[int, str] | None = None   # (start step, cue)
-        self.coverage_planned = self.coverage and self.rng.random() < p.coverage_rate
+        paused = bool(p.coverage_stop_after) and self.calm_episodes >= p.coverage_stop_after
+        # drawn whether or not paused, so that pausing leaves the noise stream as it was
+        self.coverage_planned = (self.coverage and self.rng.random() < p.coverage_rate
+                                 and not paused)
         self._clear_history()
+
+    def state_dict(self) -> dict:
+        """What carries from one episode to the next (a training run saves it between
+        episodes and restores it on resume): the count of episodes in a row, the one just
+        run included, that needed no safety takeover."""
+        if not self._count_last:
+            return {"calm_episodes": self.calm_episodes}
+        rescued = any(kind == "safety" for _, _, kind in self.events)
+        return {"calm_episodes": 0 if rescued else self.calm_episodes + 1}
+
+    def load_state_dict(self, state: dict) -> None:
+        n = state.get("calm_episodes") if isinstance(state, dict) else None
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise ValueError(f"supervisor state calm_episodes = {n!r}: must be an integer >= 0")
+        self.calm_episodes, self._count_last = n, False
 
     def _clear_history(self) -> None:
         self.depth_hist: list[float] = []
