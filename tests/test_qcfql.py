@@ -813,3 +813,32 @@ def test_observed_keys_hide_the_rest_of_the_state_from_the_networks():
         == ("window_pos_rel",)
     with pytest.raises(ValueError, match=r"observed_keys = \('nope',\) is not allowed"):
         QCFQLConfig(observed_keys=("nope",))
+
+
+def test_action_power_learns_and_acts_in_companded_units():
+    cfg = tiny(h=2, action_power=2.0)
+    agent = QCFQLAgent(OBS, A, cfg, seed=0)
+    b = make_batch(3, 2)
+    b["actions"][0, 0] = torch.tensor([0.04, -0.25, 1.0, 0.0, 0.0, 0.0, 0.7])
+    prepared = agent.prepare(b)["actions"].view(3, 2, A)
+    # the networks learn sign(a) |a|^(1/2) on the arm's entries; the vacuum entry is kept
+    assert torch.allclose(prepared[0, 0], torch.tensor([0.2, -0.5, 1.0, 0, 0, 0, 0.7]))
+    assert torch.allclose(prepared[1:, :, -1], b["actions"][1:, :, -1])
+    # the env receives sign(c) |c|^2 of what the student outputs
+    obs = np.array([0.3, -0.2], np.float32)
+    with torch.no_grad():
+        agent.ema_student.net[-1].weight.zero_()
+        agent.ema_student.net[-1].bias.copy_(torch.tensor([0.2, -0.5, 1.0, 0, 0, 0, 0.7] * 2))
+    u = agent.act(obs, deterministic=True)
+    assert np.allclose(u[0], [0.04, -0.25, 1.0, 0, 0, 0, 0.7], atol=1e-6)
+    # the critic values chunks given in env units in its own units
+    with torch.no_grad():
+        direct = agent.critic(agent.critic_input(agent.normalize(torch.as_tensor(obs)[None]),
+                                                 torch.tensor([[0.2, -0.5, 1.0, 0, 0, 0, 0.7] * 2])))
+    assert np.allclose(agent.q_values(obs[None], u[None]), direct.numpy(), atol=1e-6)
+    # p = 1 is the paper's: the env's actions unchanged
+    assert torch.equal(QCFQLAgent(OBS, A, tiny(h=2), seed=0).prepare(b)["actions"],
+                       b["actions"].reshape(3, -1))
+    for bad in (0.5, 5.0, True, "2"):
+        with pytest.raises(ValueError, match=r"action_power = .*\[1.0, 4.0\]"):
+            QCFQLConfig(action_power=bad)
