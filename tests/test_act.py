@@ -492,7 +492,7 @@ def test_cpu_policy_file_is_under_1_mb_without_the_cvae_encoder():
     """The `cpu` profile's acting weights, as the harness writes them (safetensors), stay
     under 1 MB (a reported policy is committed as this file), and leave out the CVAE
     encoder, which only training runs."""
-    from window_bench.harness.files import dump_state
+    from window_bench.harness.files import RunFileError, dump_state
 
     agent = ACTAgent(OBS_DIM, config=ACT_PROFILES["cpu"], seed=0)
     agent.fit_normalizer([synthetic_episode(23, 0)])
@@ -513,7 +513,7 @@ def test_cpu_policy_file_is_under_1_mb_without_the_cvae_encoder():
 def test_trainset_script_replays_a_policy_file_in_both_modes(tmp_path):
     import importlib.util
 
-    from window_bench.harness.files import dump_state
+    from window_bench.harness.files import RunFileError, dump_state
 
     spec = importlib.util.spec_from_file_location(
         "act_trainset", Path(__file__).parents[1] / "experiments/sanity/act_trainset.py")
@@ -581,7 +581,7 @@ def test_bc_flow_eval_reads_a_stage1_entry_and_evaluates_teacher_and_student(tmp
     import sys
 
     from baselines.qcfql import QCFQLAgent, QCFQLConfig
-    from window_bench.harness.files import dump_state
+    from window_bench.harness.files import RunFileError, dump_state
 
     path = Path(__file__).parents[1] / "experiments/sanity/bc_flow_eval.py"
     sys.path.insert(0, str(path.parent))
@@ -603,6 +603,18 @@ def test_bc_flow_eval_reads_a_stage1_entry_and_evaluates_teacher_and_student(tmp
         s = result["sets"][f"dev/{policy}"]
         assert s["episodes"] == 1 and s["rows"][0]["seed"] == 100000
         assert s["rows"][0]["steps"] == 12 and s["pr_s"] in (0.0, 1.0)
+    # a finished run's state file holds the same agent; a cache entry is not read as one
+    run_state = tmp_path / "RUN" / "state.safetensors"
+    run_state.parent.mkdir()
+    run_state.write_bytes(dump_state({"agent": agent.state_dict(), "counters": {}}, "state"))
+    again = script.main([str(run_state), "--dev", "1", "--train-starts", "0", "--max-steps",
+                         "12", "--out", str(tmp_path)])
+    assert (tmp_path / "bc_flow_RUN.json").is_file()
+    assert again["sets"]["dev/teacher"]["rows"] == result["sets"]["dev/teacher"]["rows"]
+    (tmp_path / "X").mkdir()
+    (tmp_path / "X" / "state.safetensors").write_bytes(before)
+    with pytest.raises(RunFileError, match="not a state file"):
+        script.main([str(tmp_path / "X" / "state.safetensors"), "--train-starts", "0"])
     with pytest.raises(SystemExit):
         script.main([str(tmp_path / "missing.safetensors"), "--train-starts", "0"])
     with pytest.raises(SystemExit):   # training starts need the demos' directory

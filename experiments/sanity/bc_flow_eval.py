@@ -10,7 +10,11 @@ per-episode diagnostics as ``act_trainset.py``.
         --demos-dir leaderboard/runs/demos/WindowInstall-A-v0-average-n50-s0 \
         --policy teacher student --dev 20 --train-starts 20
 
-The cache entry is only read. Writes ``<out>/bc_flow_<key[:8]>.json``.
+    # or a finished offline run: its state holds the same agent
+    python experiments/sanity/bc_flow_eval.py RUN/state.safetensors \
+        --env WindowInstall-B-v0 --train-starts 0 --dev 20
+
+The file is only read. Writes ``<out>/bc_flow_<key[:8]>.json`` (a run: ``bc_flow_<run directory name>.json``).
 """
 
 from __future__ import annotations
@@ -54,7 +58,8 @@ class ChunkPolicy:
 def main(argv=None) -> dict:
     torch.set_num_threads(1)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("entry", help="a Stage I cache entry (<key>.safetensors), read only")
+    p.add_argument("entry", help="a Stage I cache entry (<key>.safetensors), or the "
+                   "state.safetensors of a finished qcfql-offline run; read only")
     p.add_argument("--env", default="WindowInstall-A-v0")
     p.add_argument("--demos-dir", default=None,
                    help="the Minari root of the demos this entry was trained on (for the "
@@ -70,7 +75,7 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
     entry = Path(a.entry)
     if not entry.is_file():
-        p.error(f"{entry}: no such Stage I cache entry")
+        p.error(f"{entry}: no such Stage I cache entry or run state")
     if a.dev < 0 or a.train_starts < 0 or (a.max_steps is not None and a.max_steps < 1):
         p.error(f"--dev {a.dev} and --train-starts {a.train_starts} must be >= 0, "
                 f"--max-steps {a.max_steps} >= 1")
@@ -78,7 +83,8 @@ def main(argv=None) -> dict:
         p.error("--train-starts needs --demos-dir (the demos the entry was trained on)")
     material_path = entry.with_suffix(".json")
     material = json.loads(material_path.read_text()) if material_path.is_file() else {}
-    tree, _ = load_state(entry, "stage1")
+    run_state = entry.name == "state.safetensors"
+    tree, _ = load_state(entry, "state" if run_state else "stage1")
     agent = QCFQLAgent.from_state_dict(tree["agent"])
     seed = int(material.get("material", {}).get("seed", agent.seed))
     result = {"entry": str(entry), "entry_sha256": sha256_file(entry),
@@ -103,7 +109,8 @@ def main(argv=None) -> dict:
                   f"Wilson [{s['wilson95'][0]:.3f}, {s['wilson95'][1]:.3f}] "
                   f"S {s['pr_s']} I|S {s['pr_i_given_s']} T|I {s['pr_t_given_i']} "
                   f"{s['failure_modes']} {s['wall_s']} s", flush=True)
-    return save_result(result, Path(a.out) / f"bc_flow_{entry.stem[:8]}.json")
+    tag = entry.parent.name if run_state else entry.stem[:8]
+    return save_result(result, Path(a.out) / f"bc_flow_{tag}.json")
 
 
 def save_result(result: dict, out: Path) -> dict:
