@@ -492,7 +492,7 @@ def test_cpu_policy_file_is_under_1_mb_without_the_cvae_encoder():
     """The `cpu` profile's acting weights, as the harness writes them (safetensors), stay
     under 1 MB (a reported policy is committed as this file), and leave out the CVAE
     encoder, which only training runs."""
-    from window_bench.harness.files import RunFileError, dump_state
+    from window_bench.harness.files import dump_state
 
     agent = ACTAgent(OBS_DIM, config=ACT_PROFILES["cpu"], seed=0)
     agent.fit_normalizer([synthetic_episode(23, 0)])
@@ -574,7 +574,7 @@ def test_feedback_gain_of_a_policy_that_cancels_the_offset_is_minus_the_shift():
         assert g["median_mm"] == 0.0
 
 
-def test_bc_flow_eval_reads_a_stage1_entry_and_evaluates_teacher_and_student(tmp_path):
+def test_bc_flow_eval_reads_a_stage1_entry_and_evaluates_teacher_and_student(tmp_path, capsys):
     """experiments/sanity/bc_flow_eval.py: a Stage I entry (the harness's format, here a
     tiny untrained QC-FQL) is only read; both policies act in open-loop chunks of h."""
     import importlib.util
@@ -613,8 +613,10 @@ def test_bc_flow_eval_reads_a_stage1_entry_and_evaluates_teacher_and_student(tmp
     assert again["sets"]["dev/teacher"]["rows"] == result["sets"]["dev/teacher"]["rows"]
     (tmp_path / "X").mkdir()
     (tmp_path / "X" / "state.safetensors").write_bytes(before)
-    with pytest.raises(RunFileError, match="not a state file"):
+    with pytest.raises(SystemExit) as refused:   # one line, exit 2, no traceback
         script.main([str(tmp_path / "X" / "state.safetensors"), "--train-starts", "0"])
+    assert refused.value.code == 2
+    assert "not a state file" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         script.main([str(tmp_path / "missing.safetensors"), "--train-starts", "0"])
     with pytest.raises(SystemExit):   # training starts need the demos' directory

@@ -35,7 +35,7 @@ from act_trainset import summarize  # noqa: E402
 from baselines.act import _harness_demos, _rollout  # noqa: E402
 from baselines.qcfql import QCFQLAgent  # noqa: E402
 from window_bench.harness.evaluation import atomic_write_text, provenance  # noqa: E402
-from window_bench.harness.files import load_state, sha256_file  # noqa: E402
+from window_bench.harness.files import RunFileError, load_state, sha256_file  # noqa: E402
 from window_bench.harness.seeds import eval_seeds  # noqa: E402
 
 POLICIES = ("teacher", "student")
@@ -84,7 +84,10 @@ def main(argv=None) -> dict:
     material_path = entry.with_suffix(".json")
     material = json.loads(material_path.read_text()) if material_path.is_file() else {}
     run_state = entry.name == "state.safetensors"
-    tree, _ = load_state(entry, "state" if run_state else "stage1")
+    try:
+        tree, _ = load_state(entry, "state" if run_state else "stage1")
+    except RunFileError as e:
+        p.error(str(e))
     agent = QCFQLAgent.from_state_dict(tree["agent"])
     seed = int(material.get("material", {}).get("seed", agent.seed))
     result = {"entry": str(entry), "entry_sha256": sha256_file(entry),
