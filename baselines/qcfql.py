@@ -346,7 +346,8 @@ class QCFQLConfig:
 
 #: ``--agent-config`` overrides that give the paper's and the reference's agent back.
 PAPER_AGENT = {"act_noise_scale": 1.0, "td_noise_scale": 1.0, "distill_noise_scale": 1.0,
-               "policy_ema": 0.0, "distill_from_ema": False, "prior_data": "replay"}
+               "policy_ema": 0.0, "distill_from_ema": False, "prior_data": "replay",
+               "fine_pose_mm": 0.0, "grasp_mm": 0.0, "action_power": 1.0}
 
 #: Named configurations: ``paper`` (Table 8's sizes, 4 x 512, with our defaults) and ``cpu`` (2 x 256 networks, about 6x
 #: faster updates on one CPU thread; ``benchmarks/update_speed.py`` measures both).
@@ -560,10 +561,18 @@ class QCFQLAgent(Agent):
         self.update_generator = torch.Generator().manual_seed(self.seed + 2)
 
     # ------------------------------------------------------------------ the harness's interface
+    #: What ``bench run`` sets beside the config's defaults (revision 2 of the defaults, not in
+    #: the paper; ``--agent-config`` entries win): the fine pose and grasp features and action
+    #: companding, which seat setting B (docs/results/diagnoses/b-resolution.md).
+    #: ``PAPER_AGENT`` turns them off.
+    RUN_DEFAULTS = {"fine_pose_mm": 10.0, "fine_pose_deg": 2.0, "grasp_mm": 10.0,
+                    "action_power": 2.0}
+
     @classmethod
     def make_config(cls, h: int, profile, overrides: dict) -> QCFQLConfig:
         return with_overrides(QCFQLConfig(h=h, hidden=tuple(profile.hidden),
-                                          batch_size=profile.batch_size), overrides)
+                                          batch_size=profile.batch_size),
+                              {**cls.RUN_DEFAULTS, **overrides})
 
     @property
     def h(self) -> int:

@@ -15,6 +15,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import window_bench  # noqa: E402,F401  (registers the ids)
+from window_bench.installer.operators import DEFAULT_OPERATOR  # noqa: E402
 
 
 @pytest.fixture
@@ -66,5 +67,6 @@ def demos_root(tmp_path_factory):
     from window_bench.installer.demos import collect_demos
 
     root = tmp_path_factory.mktemp("demos")
-    collect_demos("WindowInstall-A-v0", 2, root, operator="average", seed=0, progress=False)
+    collect_demos("WindowInstall-A-v0", 2, root, operator=DEFAULT_OPERATOR, seed=0,
+                  progress=False)
     return root

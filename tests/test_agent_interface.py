@@ -130,7 +130,7 @@ def _json_round_trip(state):
 
 @pytest.mark.parametrize("method", ["qcfql", "hil-serl", "act", "sac"])
 def test_every_agent_saves_plain_state_and_acts_from_its_policy_state(method, demos_root):
-    demos = load_demos(demos_root, "WindowInstall-A-v0", "average")
+    demos = load_demos(demos_root, "WindowInstall-A-v0")      # the default operator's
     m = get_method(method)
     agent = make_agent(m, PROFILES["smoke"], demos, seed=0)
     agent.attach_demos(demos)

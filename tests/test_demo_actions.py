@@ -13,6 +13,7 @@ import pytest
 
 import window_bench  # noqa: F401
 from window_bench.data.steplog import demo_actions
+from window_bench.harness.results import DEFAULTS_REVISION
 from window_bench.installer.demos import collect_demos, load_demos
 from window_bench.installer.operators import HumanlikeInstaller, OperatorProfile
 from window_bench.installer.rollout import Rollout
@@ -24,8 +25,8 @@ ENV = "WindowInstall-A-v0"
 @pytest.fixture(scope="module")
 def demos(tmp_path_factory):
     root = tmp_path_factory.mktemp("demos")
-    collect_demos(ENV, 2, root, operator="average", seed=1_000_000, progress=False)
-    return root, load_demos(root, ENV, "average")
+    collect_demos(ENV, 2, root, seed=1_000_000, progress=False)     # the default operator's
+    return root, load_demos(root, ENV)
 
 
 def test_meant_actions_are_the_command_without_the_hands_noise(demos):
@@ -98,10 +99,11 @@ def test_run_refuses_meant_on_demos_that_lack_them_before_any_file(tmp_path, dem
     """Demonstrations recorded before meant actions were logged: one line, nothing written."""
     from window_bench.data.dataset import save_episodes
     from window_bench.installer.demos import demo_dataset_id
+    from window_bench.installer.operators import DEFAULT_OPERATOR
 
     _, eps = demos
     old = [type(e)(**{**e.__dict__, "meant_actions": None}) for e in eps]
-    save_episodes(old, demo_dataset_id(ENV, "average"), env_id=ENV,
+    save_episodes(old, demo_dataset_id(ENV, DEFAULT_OPERATOR), env_id=ENV,
                   obs_dim=old[0].observations.shape[1], data_path=tmp_path / "old")
     out = tmp_path / "run"
     r = subprocess.run([sys.executable, "-m", "window_bench.cli", "run", "--method", "act",
@@ -138,31 +140,39 @@ def test_a_run_trains_on_what_it_is_told_and_says_so(tmp_path, demos):
     assert demos_sha256(runs["executed"]._demos()) != demos_sha256(runs["meant"]._demos())
 
 
-def test_a_meant_grid_names_its_cells_apart_and_asks_for_it(tmp_path):
+def test_an_executed_grid_names_its_cells_apart_and_asks_for_it(tmp_path):
+    """The default labels are the meant ones; a grid of the executed record (the paper's)
+    names its cells apart, as the leaderboard names such a run."""
     from window_bench.harness.leaderboard import run_dest
     from window_bench.harness.sweep import GridError, cell_command, load_grid
 
     grid = tmp_path / "g.toml"
-    grid.write_text('demo_actions = "meant"\nprofile = "smoke"\nM = 2\n[[train]]\n'
+    grid.write_text('demo_actions = "executed"\nprofile = "smoke"\nM = 2\n[[train]]\n'
                     'methods = ["act"]\nenvs = ["WindowInstall-A-v0"]\nseeds = [0]\n')
     g = load_grid(grid)
     c = g.cells[0]
-    assert c.name == "WindowInstall-A-v0/act-meant-smoke-s0"
+    assert c.name == "WindowInstall-A-v0/act-executed-smoke-s0"
     argv = cell_command(c, g, tmp_path, resume=False)
-    assert argv[argv.index("--demo-actions") + 1] == "meant"
+    assert argv[argv.index("--demo-actions") + 1] == "executed"
     results = {"env_id": c.env_id, "method": {"name": c.method}, "profile": {"name": c.profile},
-               "seed": c.seed, "track": "state", "demo_actions": "meant"}
+               "seed": c.seed, "track": "state", "demo_actions": "executed",
+               "defaults": DEFAULTS_REVISION}
     assert run_dest(results, tmp_path) == c.path(tmp_path)
+    grid.write_text(grid.read_text().replace('"executed"', '"meant"', 1))
+    assert load_grid(grid).cells[0].name == "WindowInstall-A-v0/act-smoke-s0"
     grid.write_text(grid.read_text().replace('"meant"', '"clean"', 1))
     with pytest.raises(GridError, match="demo_actions = 'clean'; allowed: executed, meant"):
         load_grid(grid)
 
 
-def test_meant_rows_are_their_own_rows_in_the_tables():
+def test_labels_other_than_the_revisions_are_their_own_rows_in_the_tables():
     from window_bench.harness.tables import _overrides
 
-    assert _overrides({"demo_actions": "meant"}) == (("demo_actions", '"meant"'),)
+    assert _overrides({"demo_actions": "meant"}) == (("demo_actions", '"meant"'),)   # rev. 1
     assert _overrides({"demo_actions": "executed"}) == _overrides({}) == ()
+    now = {"defaults": DEFAULTS_REVISION}
+    assert _overrides({**now, "demo_actions": "executed"}) == (("demo_actions", '"executed"'),)
+    assert _overrides({**now, "demo_actions": "meant"}) == _overrides(now) == ()
 
 
 def test_meant_actions_survive_the_dataset_and_old_datasets_load_without(tmp_path, demos):

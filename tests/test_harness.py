@@ -15,6 +15,8 @@ from window_bench.data.dataset import load_episodes
 from window_bench.harness.evaluation import wilson_interval
 from window_bench.harness.run import Run, summarize_eval, time_to_threshold
 from window_bench.harness.methods import METHODS, PROFILES, get_method, methods_table
+from window_bench.installer.operators import DEFAULT_OPERATOR
+from window_bench.harness.results import DEFAULTS_REVISION
 
 
 # ---------------------------------------------------------------- metrics
@@ -143,7 +145,8 @@ def test_smoke_run_through_the_cli_and_eval(tmp_path, demos_root, capsys):
     r = json.loads((out / "results.json").read_text())
     assert r["schema_version"] == 1 and r["method"]["name"] == "qcfql" and r["seed"] == 0
     assert r["profile"]["name"] == "smoke" and r["hyperparameters"]["h"] == 10
-    assert r["operator"] == "average" and r["operator_profile"]["wedge_steps"] == 2
+    assert r["operator"] == DEFAULT_OPERATOR and r["operator_profile"]["wedge_steps"] == 10
+    assert r["defaults"] == DEFAULTS_REVISION and r["demo_actions"] == "meant"
     assert r["provenance"]["git_commit"] and "mujoco" in json.dumps(r["provenance"])
     steps = [c["env_steps"] for c in r["checkpoints"]]
     assert steps == [0, 200, 400]            # after Stage I, then every 200 steps
@@ -388,7 +391,7 @@ def test_baselines_run_through_the_harness(tmp_path, demos_root, method):
     assert r["method"]["h"] == 1 and r["hyperparameters"]
     assert sum(e["steps"] for e in r["train_episodes"]) <= 400
     if method == "sac":
-        demos = load_episodes("window-bench/demos-a-average-v0", data_path=demos_root)
+        demos = load_episodes(f"window-bench/demos-a-{DEFAULT_OPERATOR}-v0", data_path=demos_root)
         assert r["hyperparameters"]["demo_transitions"] == sum(ep.T for ep in demos)
 
 

@@ -23,12 +23,14 @@ import pytest
 
 from window_bench.cli import main
 from window_bench.installer.demos import demo_dataset_path
+from window_bench.installer.operators import DEFAULT_OPERATOR
 
 BENCH = [sys.executable, "-m", "window_bench.cli"]
 RUN = ["run", "--method", "qcfql-offline", "--profile", "smoke", "--seed", "0",
        "--eval-workers", "1"]
 POLICY = "policies/step_0000000.safetensors"
-DATASET = demo_dataset_path("demos", "WindowInstall-A-v0", "average")   # in a run directory
+DATASET = demo_dataset_path("demos", "WindowInstall-A-v0", DEFAULT_OPERATOR)   # in a run dir
+DATASET_ID = f"window-bench/demos-a-{DEFAULT_OPERATOR}-v0"
 
 
 def snapshot(d: Path) -> dict:
@@ -94,7 +96,7 @@ def test_the_planted_payload_runs_under_minari_alone(evil_root, tmp_path, monkey
 
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(evil_root))
     with pytest.raises(Exception):   # subprocess.run returns no env: but it did run
-        minari.load_dataset("window-bench/demos-a-average-v0")
+        minari.load_dataset(DATASET_ID)
     assert (tmp_path / "MARKER").exists()
 
 
@@ -103,7 +105,7 @@ def test_bench_run_demos_refuses_a_dataset_that_names_code(evil_root, tmp_path, 
     monkeypatch.chdir(tmp_path)
     before = snapshot(tmp_path)
     rc, line = bench(RUN + ["--out", "r", "--demos", str(evil_root)], capsys)
-    assert rc == 2 and line.startswith(f"error: dataset 'window-bench/demos-a-average-v0' at "
+    assert rc == 2 and line.startswith(f"error: dataset '{DATASET_ID}' at "
                                        f"{evil_root / DATASET.relative_to('demos')}: ")
     assert "records no observation_space" in line and line.endswith("or pass another --demos")
     assert not (tmp_path / "MARKER").exists() and snapshot(tmp_path) == before
@@ -178,7 +180,7 @@ def test_resume_refuses_a_manifest_edited_to_another_seed(run_dir, tmp_path, cap
     (["--seed", "3"], "seed", "0", "3"),
     (["--profile", "cpu"], "profile", "'smoke'", "'cpu'"),
     (["--agent-config", "alpha=3"], "agent_config", "{}", "{'alpha': 3}"),
-    (["--operator", "expert"], "operator", "'average'", "'expert'"),
+    (["--operator", "expert"], "operator", f"'{DEFAULT_OPERATOR}'", "'expert'"),
 ])
 def test_resume_refuses_arguments_the_run_did_not_record(run_dir, tmp_path, capsys, change,
                                                          key, saved, asked):

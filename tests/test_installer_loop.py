@@ -517,9 +517,11 @@ def test_operator_profiles():
     # flush is the average installer that presses a panel flat at the stop, nothing else
     flush, average = OPERATORS["flush"].as_dict(), OPERATORS["average"].as_dict()
     assert {k for k in flush if flush[k] != average[k]} == {"name", "press_at_stop"}
-    # attentive-flush: the attentive installer that presses at the stop, nothing else
+    # attentive-flush: the attentive installer that presses at the stop, pauses its coverage
+    # and waits longer at the pick and the opening, nothing else
     af, att = OPERATORS["attentive-flush"].as_dict(), OPERATORS["attentive"].as_dict()
-    assert {k for k in af if af[k] != att[k]} == {"name", "press_at_stop", "coverage_stop_after"}
+    assert {k for k in af if af[k] != att[k]} == {"name", "press_at_stop", "coverage_stop_after",
+                                                  "acquire_patience_steps", "hover_steps"}
     assert {p.name for p in OPERATORS.values() if p.coverage_stop_after} == {"attentive-flush"}
 
 

@@ -1038,3 +1038,17 @@ def test_state_only_features_are_refused_on_pixels_before_any_file(tmp_path, cap
     assert err.endswith(f"{field} = {shown} reads the flat state observation; on the pixel "
                         f"track (cameras and proprioception) it must be {off} (off)")
     assert len(err.splitlines()) == 1 and not out.exists()
+
+
+def test_the_state_tracks_feature_defaults_are_off_on_pixels():
+    """bench run's QC-FQL defaults turn on features of the flat state (RUN_DEFAULTS); a pixel
+    agent's config has them off unless asked for, and keeps the rest (action companding)."""
+    from baselines.qcfql import QCFQLAgent
+    from window_bench.harness.methods import agent_class, get_profile
+    from window_bench.harness.tracks import get_track
+
+    profile = get_profile("cpu")
+    state = QCFQLAgent.make_config(10, profile, {})
+    assert state.fine_pose_mm and state.grasp_mm
+    pixel = agent_class(get_track("pixels").agent_kind("qcfql")).make_config(10, profile, {})
+    assert (pixel.fine_pose_mm, pixel.grasp_mm, pixel.action_power) == (0.0, 0.0, 2.0)

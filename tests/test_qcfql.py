@@ -781,13 +781,22 @@ def test_learns_a_one_step_toy():
 
 
 def test_paper_agent_overrides_name_every_departure_from_the_paper():
-    from baselines.qcfql import PAPER_AGENT
+    """What bench run builds (the config's defaults and RUN_DEFAULTS) departs from the paper
+    in every entry of PAPER_AGENT, and PAPER_AGENT gives each back."""
+    from baselines.qcfql import PAPER_AGENT, QCFQLAgent
+    from window_bench.harness.methods import get_profile
 
-    ours, paper = QCFQLConfig(), QCFQLConfig(**PAPER_AGENT)
+    ours = QCFQLAgent.make_config(10, get_profile("cpu"), {})
+    paper = QCFQLAgent.make_config(10, get_profile("cpu"), PAPER_AGENT)
     for name, value in PAPER_AGENT.items():
         assert getattr(ours, name) != value, name   # a real departure, not a no-op
         assert getattr(paper, name) == value
     assert (paper.alpha, paper.distill_reduction, paper.flow_steps) == (300.0, "sum", 10)
+    assert (ours.fine_pose_mm, ours.fine_pose_deg, ours.grasp_mm, ours.action_power) == \
+        (10.0, 2.0, 10.0, 2.0)
+    assert QCFQLAgent.make_config(10, get_profile("cpu"), {"grasp_mm": 0.0}).grasp_mm == 0.0
+    # the dataclass itself stays free of the window env's observation features
+    assert (QCFQLConfig().fine_pose_mm, QCFQLConfig().grasp_mm) == (0.0, 0.0)
 
 
 def test_observed_keys_hide_the_rest_of_the_state_from_the_networks():

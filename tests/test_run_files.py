@@ -25,6 +25,7 @@ from window_bench.harness.evaluation import atomic_write_text
 from window_bench.harness.files import (RunFileError, dump_state, load_state, parse_state,
                                         verify_files)
 from window_bench.installer.demos import collect_demos
+from window_bench.installer.operators import DEFAULT_OPERATOR
 
 BENCH = [sys.executable, "-m", "window_bench.cli"]
 RUN = ["run", "--method", "qcfql-offline", "--profile", "smoke", "--seed", "0"]
@@ -52,7 +53,8 @@ def umask() -> int:
 @pytest.fixture(scope="module")
 def demos_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("demos")
-    collect_demos("WindowInstall-A-v0", 2, root, operator="average", seed=0, progress=False)
+    collect_demos("WindowInstall-A-v0", 2, root, operator=DEFAULT_OPERATOR, seed=0,
+                  progress=False)
     return root
 
 
@@ -276,8 +278,9 @@ def test_an_unreadable_demo_dataset_is_an_error_not_recollected(runs, tmp_path, 
     before = snapshot(tmp_path)
     assert main(RUN + ["--out", str(tmp_path / "run"), "--demos", str(demos)]) == 2
     line = one_line(capsys.readouterr().err)
-    assert line.startswith("error: dataset 'window-bench/demos-a-average-v0' at "
-                           f"{demos / 'window-bench' / 'demos-a-average-v0'} is unreadable: ")
+    name = f"demos-a-{DEFAULT_OPERATOR}-v0"
+    assert line.startswith(f"error: dataset 'window-bench/{name}' at "
+                           f"{demos / 'window-bench' / name} is unreadable: ")
     assert line.endswith("it was not replaced: repair or remove it, or pass another --demos")
     assert snapshot(tmp_path) == before and not (tmp_path / "run").exists()
 

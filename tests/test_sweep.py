@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from window_bench.harness.results import DEFAULTS_REVISION
+
 from window_bench.harness.sweep import Cell, GridError, cell_command, cell_status, load_grid, \
     schedule
 
@@ -138,9 +140,10 @@ def test_a_best_dev_grid_asks_for_it_and_a_last_checkpoint_result_is_not_done(tm
     d.mkdir(parents=True)
     (d / "state.safetensors").write_bytes(b"x")
     fe = {"episodes": 2, "seed_set": "test"}
-    (d / "results.json").write_text(json.dumps({"final_eval": fe}))    # the last checkpoint's
+    (d / "results.json").write_text(json.dumps({"defaults": DEFAULTS_REVISION, "final_eval": fe}))    # the last checkpoint's
     assert cell_status(c, g, tmp_path) == "partial"
-    (d / "results.json").write_text(json.dumps({"final_eval": {**fe, "checkpoint": "best-dev"}}))
+    (d / "results.json").write_text(json.dumps({"defaults": DEFAULTS_REVISION,
+                                                "final_eval": {**fe, "checkpoint": "best-dev"}}))
     assert cell_status(c, g, tmp_path) == "done"
 
 
@@ -208,11 +211,15 @@ def test_cell_status_done_partial_new_conflict(tmp_path):
     d.mkdir(parents=True)
     (d / "state.safetensors").write_bytes(b"x")
     assert cell_status(c, g, tmp_path) == "partial"
-    (d / "results.json").write_text(json.dumps({"final_eval": {"episodes": 2, "seed_set": "test"}}))
+    (d / "results.json").write_text(json.dumps({"defaults": DEFAULTS_REVISION, "final_eval": {"episodes": 2, "seed_set": "test"}}))
     assert cell_status(c, g, tmp_path) == "done"
     (d / "state.safetensors").unlink()
-    (d / "results.json").write_text(json.dumps({"final_eval": {"episodes": 20, "seed_set": "dev"}}))
+    (d / "results.json").write_text(json.dumps({"defaults": DEFAULTS_REVISION, "final_eval": {"episodes": 20, "seed_set": "dev"}}))
     assert cell_status(c, g, tmp_path).startswith("conflict")
+    # a finished run of earlier defaults is never taken for the grid's cell, nor overwritten
+    (d / "results.json").write_text(json.dumps({"final_eval": {"episodes": 2, "seed_set": "test"}}))
+    assert cell_status(c, g, tmp_path).startswith(
+        f"conflict: {d} holds a run made under revision 1 of the defaults")
 
 
 def test_status_reports_each_cell_from_its_files_without_starting_anything(tmp_path):
@@ -232,7 +239,7 @@ def test_status_reports_each_cell_from_its_files_without_starting_anything(tmp_p
     for d in (done, online, offline):
         d.mkdir(parents=True)
     (done / "results.json").write_text(json.dumps({
-        "final_eval": {"episodes": 2, "seed_set": "test", "successes": 1},
+        "defaults": DEFAULTS_REVISION, "final_eval": {"episodes": 2, "seed_set": "test", "successes": 1},
         "final": {"wall_clock_s": 600.0},
         "provenance": {"git_commit": "48c79d63c1c5986b0a41a2121ddf2a1f63514538"}}))
     counters = {"stage": "online", "offline_done": 40, "env_steps": 150, "wall_clock_s": 120.0,
@@ -293,7 +300,7 @@ def test_code_notes_name_cells_whose_row_ran_at_other_code(tmp_path):
     d = g.cells[0].path(out)
     d.mkdir(parents=True)
     (d / "results.json").write_text(json.dumps({
-        "final_eval": {"episodes": 2, "seed_set": "test", "successes": 0},
+        "defaults": DEFAULTS_REVISION, "final_eval": {"episodes": 2, "seed_set": "test", "successes": 0},
         "provenance": {"git_commit": "48c79d63c1c5986b0a41a2121ddf2a1f63514538"}}))
     assert list(row_commits(g, out).values()) == [{"48c79d6"}]
     todo = list(g.cells[1:])
@@ -451,3 +458,13 @@ def test_status_reads_hand_edited_results_without_traceback(tmp_path):
     detail = _progress_detail(cell, {"stage": "offline", "offline_done": "many",
                                      "wall_clock_s": None})
     assert detail.startswith("Stage I, 0 updates")
+
+
+def test_a_grid_block_may_name_a_preset_whose_overrides_its_own_entries_win(tmp_path):
+    from window_bench.harness.methods import get_preset
+
+    g = _grid(tmp_path, GRID + 'preset = "qcfql-as-published"\nagent_config = { policy_ema = 0.5 }\n')
+    c = next(c for c in g.cells if c.method == "qcfql")
+    assert dict(c.agent_config) == {**get_preset("qcfql-as-published"), "policy_ema": 0.5}
+    with pytest.raises(GridError, match=r"train\[0\]\.preset = 'nope': unknown agent preset"):
+        _grid(tmp_path, GRID + 'preset = "nope"\n')

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from window_bench.harness.methods import METHODS, PROFILES
+from window_bench.harness.results import DEFAULTS_REVISION
 from window_bench.harness.tables import bootstrap_ci, build, iqm, load_paper, load_runs, \
     running_curves
 
@@ -16,8 +17,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _results(root: Path, method: str, env: str, seed: int, success: float, *, h=None,
              seed_set="test", M=100, overrides=None, episodes=None, cycle=25.0, track=None,
-             operator=None):
-    """A results.json as bench run writes it (the fields bench tables reads)."""
+             operator=None, defaults=DEFAULTS_REVISION):
+    """A results.json as bench run writes it (the fields bench tables reads); ``defaults=None``:
+    a file from before the revisions of the defaults (revision 1)."""
     m = METHODS[method].as_dict()
     if h is not None:
         m["h"] = h
@@ -37,8 +39,11 @@ def _results(root: Path, method: str, env: str, seed: int, success: float, *, h=
         r["track"] = track
     if operator is not None:
         r["operator"] = operator
+    if defaults is not None:
+        r["defaults"] = defaults
     tag = ("".join(f"-{a}{b}" for a, b in (overrides or {}).items()) + (f"-{track}" if track else "")
            + (f"-{operator}" if operator else ""))
+    tag += "" if defaults == DEFAULTS_REVISION else f"-d{defaults or 1}"
     d = root / env / f"{method}{'' if h is None else f'-h{h}'}{tag}-smoke-{seed_set}-s{seed}"
     d.mkdir(parents=True)
     (d / "results.json").write_text(json.dumps(r))
@@ -108,7 +113,7 @@ def test_another_operator_is_its_own_row_named_in_its_note(tmp_path):
     _results(runs, "qcfql-offline", "WindowInstall-B-v0", 0, 0.4, operator="attentive",
              overrides={"fine_pose_mm": 10.0})
     _results(runs, "qcfql-offline", "WindowInstall-B-v0", 0, 0.3, operator="attentive")
-    _results(runs, "qcfql-offline", "WindowInstall-B-v0", 0, 0.1, operator="average")
+    _results(runs, "qcfql-offline", "WindowInstall-B-v0", 0, 0.1)    # the default operator
     t3 = build(runs, tmp_path / "out", figures=False)["table3.md"]
     rows = [ln for ln in t3.splitlines() if ln.startswith("| Ours (offline-only)")]
     assert len(rows) == 3
@@ -317,6 +322,13 @@ def test_leaderboard_names_the_track_and_keeps_tracks_apart(tmp_path):
     assert run_dest(r_ro, "lb").name == "qcfql-offline-pixels-readoutab12ab12-smoke-s0"
     r_odd = {**r_pix, "encoder": {"pose_readout": {"sha256": "../x"}}}
     assert run_dest(r_odd, "lb").name == "qcfql-offline-pixels-smoke-s0"
+    # the operator and D_demo labels are named where they depart from the run's own revision
+    r_cur = {**r_state, "operator": "average", "demo_actions": "executed"}
+    assert run_dest(r_cur, "lb").name == "qcfql-offline-average-executed-smoke-s0"
+    r_one = {k: v for k, v in r_cur.items() if k != "defaults"}           # revision 1
+    assert run_dest(r_one, "lb").name == "qcfql-offline-smoke-s0"
+    assert run_dest({**r_one, "operator": "attentive-flush", "demo_actions": "meant"},
+                    "lb").name == "qcfql-offline-attentive-flush-meant-smoke-s0"
     body = leaderboard(runs, readme=None, snippet=None)
     rows = [ln for ln in body.splitlines() if "(`qcfql-offline`)" in ln]
     assert rows[0].startswith("| state | WindowInstall-A-v0 |") and "| 90 [" in rows[0]
@@ -606,3 +618,30 @@ def test_leaderboard_add_never_replaces_a_run_without_force(tmp_path, capsys, mo
     assert dest.read_text() == kept
     assert main(["leaderboard", "--add", str(run), "--root", "lb", "--force"]) == 0
     assert dest.read_text() == (run / "results.json").read_text()
+
+
+def test_a_row_of_earlier_defaults_is_marked_until_its_method_is_rerun(tmp_path):
+    """A file without a defaults revision is revision 1: its departures are measured from
+    revision 1's defaults (operator average, executed D_demo), its row is marked, and it
+    leaves the table once its method has a row under the current defaults."""
+    runs = tmp_path / "runs"
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.8, operator="average", defaults=None)
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.5, operator="attentive", defaults=None,
+             overrides={"policy_ema": 0.0})
+    _results(runs, "qcfql-offline", "WindowInstall-A-v0", 0, 0.6, operator="average",
+             defaults=None)
+    _results(runs, "qcfql-offline", "WindowInstall-A-v0", 0, 0.9)
+    t2 = build(runs, tmp_path / "out", figures=False)["table2.md"]
+    rows = [ln for ln in t2.splitlines() if ln.startswith("| Ours")]
+    assert any(ln.startswith("| Ours (complete pipeline), *defaults 1* | 1 | **80** | 100")
+               for ln in rows)                      # average under revision 1: no variant
+    assert any(ln.startswith("| Ours (complete pipeline), variant 1, *defaults 1* | 1 | **50**")
+               for ln in rows)
+    assert "- Variant 1: `qcfql` with `operator=\"attentive\"`, `policy_ema=0.0`.\n" in t2
+    assert "Rows marked *defaults 1* were run under revision 1" in t2
+    offline = [ln for ln in rows if ln.startswith("| Ours (offline-only)")]
+    assert offline == [next(ln for ln in rows if ln.startswith("| Ours (offline-only) | 1 | **90**"))]
+    # under the current defaults, average is a departure of its own
+    _results(runs, "qcfql-offline", "WindowInstall-B-v0", 1, 0.2, operator="average")
+    t3 = build(runs, tmp_path / "out2", figures=False)["table3.md"]
+    assert "- Variant 1: `qcfql-offline` with `operator=\"average\"`.\n" in t3

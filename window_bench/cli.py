@@ -460,13 +460,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=arg.seed, default=0, help="first episode seed")
     c.add_argument("--out", type=arg.out_dir, default="runs/calibration", help="results directory (resumes if present)")
     c.set_defaults(func=cmd_calibrate)
-    from window_bench.installer.operators import OPERATORS
+    from window_bench.data.steplog import DEFAULT_DEMO_ACTIONS, DEMO_ACTIONS
+    from window_bench.installer.operators import DEFAULT_OPERATOR, OPERATORS
 
     d = sub.add_parser("demos", help="collect successful human-like demonstrations (Minari)")
     d.add_argument("--env", type=arg.env_id, default="WindowInstall-A-v0", help=ENV_HELP)
     d.add_argument("--n", type=arg.positive, default=50, help="successful demonstrations to keep")
     d.add_argument("--out", type=arg.out_dir, default="data", help="Minari datasets root (resumes if present)")
-    d.add_argument("--operator", choices=sorted(OPERATORS), default="average",
+    d.add_argument("--operator", choices=sorted(OPERATORS), default=DEFAULT_OPERATOR,
                    help="operator profile of the demonstrator")
     d.add_argument("--seed", type=arg.seed, default=0, help="seed of the first attempt")
     d.add_argument("--max-attempts", type=arg.positive, default=None,
@@ -505,14 +506,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=arg.seed, default=0, help="run seed (agent, envs, evaluation order)")
     r.add_argument("--out", type=arg.out_dir, required=True, help="run directory")
     r.add_argument("--resume", action="store_true", help="continue the run saved in --out")
-    r.add_argument("--operator", choices=sorted(OPERATORS), default="average",
+    r.add_argument("--operator", choices=sorted(OPERATORS), default=DEFAULT_OPERATOR,
                    help="operator profile for demonstrations and takeovers")
     r.add_argument("--demos", type=arg.dir_path, help="Minari datasets root holding the "
                    "demonstrations (None: collect them into OUT/demos)")
-    r.add_argument("--demo-actions", choices=["executed", "meant"], default="executed",
-                   help="the actions learners train on from D_demo: as executed (the paper's "
-                        "record) or as the demonstrator meant them, before its hand's noise "
-                        "(DART-style labels; docs/results/diagnoses/b-demos.md)")
+    r.add_argument("--demo-actions", choices=list(DEMO_ACTIONS), default=DEFAULT_DEMO_ACTIONS,
+                   help="the actions learners train on from D_demo: as the demonstrator meant "
+                        "them, before its hand's noise (DART-style labels; "
+                        "docs/results/diagnoses/b-demos.md), or as executed (the paper's record)")
     r.add_argument("--acceptance-noise", nargs=3, metavar=("FP", "FN", "DELAY"), default=None,
                    help="train on a noisy acceptance sensor: false-positive rate per step, "
                         "false-negative rate, delay in steps (evaluation keeps true acceptance)")

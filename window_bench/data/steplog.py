@@ -296,6 +296,9 @@ def without_noops(ep: EpisodeLog, before: str | None = None) -> EpisodeLog:
 
 #: What a learner may train on as D_demo's actions (``--demo-actions``).
 DEMO_ACTIONS = ("executed", "meant")
+#: What learners train on from D_demo unless told otherwise (``--demo-actions``): the
+#: demonstrator's meant commands (revision 2 of the defaults; revision 1: ``executed``).
+DEFAULT_DEMO_ACTIONS = "meant"
 
 
 def check_demo_actions(which) -> str:

@@ -15,6 +15,19 @@ from pathlib import Path
 import numpy as np
 
 RESULTS_SCHEMA = 1
+#: The revision of the shipped defaults a run was made under (``results.json``'s ``defaults``;
+#: a file without it is revision 1). What a revision sets beside the agents' own configs: the
+#: operator profile of D_demo and the takeovers, and which of D_demo's actions learners train
+#: on. Revision 2 also changed QC-FQL's run config (``QCFQLAgent.RUN_DEFAULTS``). A row of
+#: the tables departs from its own revision's defaults, never from another's.
+DEFAULTS_REVISION = 2
+REVISION_DEFAULTS = {1: {"operator": "average", "demo_actions": "executed"},
+                     2: {"operator": "attentive-flush", "demo_actions": "meant"}}
+
+
+def revision_of(results: dict) -> int:
+    """The defaults revision a results file was made under (1 for files without one)."""
+    return results.get("defaults", 1)
 STEPS_PER_HOUR = 36_000            # 10 Hz
 LOSS_LOG_EVERY = 500    # learner calls averaged into one TensorBoard point (loss/...)
 #: Which checkpoint's policy the final evaluation runs: ``last`` (the tables' protocol) or

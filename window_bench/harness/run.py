@@ -15,6 +15,7 @@ evaluated without interventions on M seeded rollouts (the same seeds at every ch
 every method), in worker processes: success (95 % Wilson interval), cycle time, Pr(S),
 Pr(I|S), Pr(T|I), failure modes; training success and intervention rate over the last 20
 episodes, takeover minutes, time-to-95 (raw success >= 95 % at J = 3 checkpoints in a row).
+Progress is reported in simulated hours (environment steps / 36,000).
 
 Outputs in ``--out``: ``results.json`` (schema-versioned: method, env, profile, seed,
 hyperparameters, versions, git commit, every checkpoint), ``checkpoints.csv``,
@@ -47,24 +48,25 @@ import numpy as np
 import torch
 
 import window_bench
-from window_bench.data.steplog import STEP_DT, check_demo_actions, demo_actions as labelled
+from window_bench.data.steplog import (DEFAULT_DEMO_ACTIONS, STEP_DT, check_demo_actions,
+                                       demo_actions as labelled)
 from window_bench.harness.agent import check_agent_config, make_agent, takeover_segments
 from window_bench.harness.evaluation import (FINAL_EVAL_KEYS, AgentPolicy, Evaluator,
                                              atomic_write_text, evaluate_policy_file, provenance,
                                              summarize_eval, time_to_threshold)
 from window_bench.harness.files import STATE, RunDir, RunFileError
 from window_bench.harness.methods import agent_class, get_method, get_profile
-from window_bench.harness.results import (LOSS_LOG_EVERY, RESULTS_SCHEMA, STEPS_PER_HOUR,
-                                          Scalars, check_final_checkpoint, checkpoints_csv,
-                                          chosen_checkpoint, plot_learning_curve)
+from window_bench.harness.results import (DEFAULTS_REVISION, LOSS_LOG_EVERY, RESULTS_SCHEMA,
+                                          STEPS_PER_HOUR, Scalars, check_final_checkpoint,
+                                          checkpoints_csv, chosen_checkpoint, plot_learning_curve)
 from window_bench.harness.seeds import DEV_SEED0, MAX_SEED, eval_seeds
+from window_bench.harness.stage1 import demos_sha256
 from window_bench.harness.tracks import DEFAULT_TRACK, get_track
 from window_bench.installer.rollout import Rollout
-from window_bench.installer.operators import get_operator
-
+from window_bench.installer.operators import DEFAULT_OPERATOR, get_operator
 # Where scripts have imported them from; they live in agent.py and evaluation.py.
-from window_bench.harness.agent import obs_normalizer, parse_overrides  # noqa: F401
-from window_bench.harness.evaluation import load_policy_file  # noqa: F401
+from window_bench.harness.agent import obs_normalizer, parse_overrides  # noqa: F401, E402
+from window_bench.harness.evaluation import load_policy_file  # noqa: F401, E402
 
 EVAL_SEED0 = DEV_SEED0   # checkpoint evaluations use the development seeds (harness/seeds.py)
 RATE_WINDOW = 20
@@ -85,14 +87,14 @@ class Run:
     """One training run; :meth:`train` executes (or resumes) it to the end."""
 
     def __init__(self, method: str, env_id: str, profile: str, seed: int, out: str | os.PathLike,
-                 *, resume: bool = False, operator: str = "average",
+                 *, resume: bool = False, operator: str = DEFAULT_OPERATOR,
                  track: str = DEFAULT_TRACK, encoder_weights: str | os.PathLike | None = None,
                  demos: str | os.PathLike | None = None, progress: bool = True,
                  save_every_s: float = 60.0, acceptance_noise: dict | None = None,
                  agent_config: dict | None = None, h: int | None = None,
                  final_episodes: int | None = None, final_seed_set: str = "dev",
                  final_checkpoint: str = "last", stage1_cache: str | os.PathLike | None = None,
-                 eval_workers: int | None = None, demo_actions: str = "executed",
+                 eval_workers: int | None = None, demo_actions: str = DEFAULT_DEMO_ACTIONS,
                  pixel_demos_cache: str | os.PathLike | None = None):
         self.method = get_method(method)
         if h is not None:    # Tables 5/6: replay, agent and chunking all follow method.h
@@ -153,11 +155,12 @@ class Run:
         # before any file. The run's own demos are read once checked against its manifest.
         self._raw_demos = None if self._own_demos else self._raw_demo_episodes(collect=False)
         labelled(self._raw_demos or [], self.demo_actions)   # they record what is asked
-        self.files = RunDir(self.out, {
+        self.files = RunDir(self.out, {     # a run resumes only under the same defaults
             "method": self.method.name, "env_id": self.env_id, "profile": self.profile.name,
             "seed": self.seed, "operator": self.operator, "track": self.track, "h": self.method.h,
             "acceptance_noise": self.acceptance_noise, "agent_config": self.agent_config,
-            **({"demo_actions": demo_actions} if demo_actions != "executed" else {})}, resume)
+            **({"demo_actions": demo_actions} if demo_actions != "executed" else {}),
+            "defaults": DEFAULTS_REVISION}, resume)
         if self._own_demos:
             from window_bench.installer.demos import demo_dataset_path
 
@@ -227,12 +230,6 @@ class Run:
             self.files.record(inside)
         return eps
 
-    def _demos_sha256(self) -> str:
-        """The recorded demonstrations' digest: a resume must read the ones the run began on."""
-        from window_bench.harness.stage1 import demos_sha256
-
-        return demos_sha256(self._raw_demos)
-
     def _fresh(self) -> dict:
         torch.manual_seed(self.seed)
         demos = self._demos()
@@ -245,7 +242,7 @@ class Run:
         return {"stage": "offline", "offline_done": 0, "env_steps": 0, "episodes": [],
                 "checkpoints": [], "grad_steps": 0, "update_credit": 0.0, "wall_clock_s": 0.0,
                 "next_checkpoint": 0, "obs_dim": int(demos[0].observations.shape[1]),
-                "h": self.method.h, "demos_sha256": self._demos_sha256(),
+                "h": self.method.h, "demos_sha256": demos_sha256(self._raw_demos),
                 "pixel_demos": None if observed is None else [observed],
                 "provenance_start": provenance()}
 
@@ -280,7 +277,8 @@ class Run:
         if self.c.setdefault("h", self.method.h) != self.method.h:
             raise RunFileError(f"--resume: the saved run has h = {self.c['h']}, this command "
                                f"asks for h = {self.method.h}")
-        demos, digest = self._demos(), self._demos_sha256()
+        demos = self._demos()   # a resume must read the demos the run began on
+        digest = demos_sha256(self._raw_demos)
         if self.c.setdefault("demos_sha256", digest) != digest:
             raise RunFileError(f"--resume: the run in {self.out} began on other demonstrations "
                                f"than those in {self.demos_root} (sha256 "
@@ -569,7 +567,8 @@ class Run:
         final = cps[-1]
         final_eval = self._final_eval()
         results = {
-            "schema_version": RESULTS_SCHEMA, "method": self.method.as_dict(),
+            "schema_version": RESULTS_SCHEMA, "defaults": DEFAULTS_REVISION,
+            "method": self.method.as_dict(),
             "env_id": self.env_id, "profile": self.profile.as_dict(), "seed": self.seed,
             "track": self.track, "encoder": self.encoder, "operator": self.operator,
             "operator_profile": get_operator(self.operator).as_dict(),   # its cues, as run

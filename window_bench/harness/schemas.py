@@ -122,7 +122,9 @@ def results_schema() -> dict:
     read."""
     import window_bench
     from window_bench.harness.methods import METHODS, PROFILES
-    from window_bench.harness.results import FINAL_CHECKPOINTS
+    from window_bench.harness.results import FINAL_CHECKPOINTS, REVISION_DEFAULTS
+    from window_bench.data.steplog import DEMO_ACTIONS
+    from window_bench.installer.operators import OPERATORS
     from window_bench.harness.tracks import TRACKS
 
     commit = {"type": "object", "required": ["git_commit"], "properties": {
@@ -134,6 +136,9 @@ def results_schema() -> dict:
                      "checkpoints", "provenance"],
         "properties": {
             "schema_version": {"const": RESULTS_SCHEMA},
+            "defaults": {"enum": list(REVISION_DEFAULTS)},
+            "operator": {"enum": sorted(OPERATORS)},
+            "demo_actions": {"enum": list(DEMO_ACTIONS)},
             "method": {"type": "object", "required": ["name", "label", "h", "online_updates",
                                                       "warm_start"],
                        "properties": {"name": {"enum": list(METHODS)},

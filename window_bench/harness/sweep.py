@@ -66,18 +66,18 @@ from pathlib import Path
 
 from window_bench.harness.evaluation import atomic_write_text
 from window_bench.harness.leaderboard import override_tag
-from window_bench.harness.methods import agent_class, get_method, get_profile
-from window_bench.harness.results import FINAL_CHECKPOINTS
+from window_bench.harness.methods import agent_class, get_method, get_preset, get_profile
+from window_bench.harness.results import DEFAULTS_REVISION, FINAL_CHECKPOINTS, revision_of
 from window_bench.harness.schemas import FIELD_NAME, POLICY_FILE, SAFE_NAME, read_json
 from window_bench.harness.seeds import SEED_SETS
 from window_bench.harness.tracks import DEFAULT_TRACK, TRACKS, get_track
 from window_bench.installer.operators import DEFAULT_OPERATOR, OPERATORS
-from window_bench.data.steplog import DEMO_ACTIONS
+from window_bench.data.steplog import DEFAULT_DEMO_ACTIONS, DEMO_ACTIONS
 
 GRID_KEYS = {"name", "table", "title", "profile", "M", "seed_set", "operator", "eval_workers",
              "final_checkpoint", "track", "demo_actions", "train", "evaluate"}
-TRAIN_KEYS = {"methods", "envs", "seeds", "h", "agent_config"}
-EVALUATE_KEYS = {"method", "env", "seeds", "on", "h", "agent_config"}
+TRAIN_KEYS = {"methods", "envs", "seeds", "h", "agent_config", "preset"}
+EVALUATE_KEYS = {"method", "env", "seeds", "on", "h", "agent_config", "preset"}
 MAX_GRID_BYTES = 1 << 20
 LOGS = "sweep-logs"      # OUT/sweep-logs/<cell>.log and .json: nothing of ours in a run directory
 
@@ -102,7 +102,7 @@ class Cell:
     track: str = DEFAULT_TRACK                 # observation track (harness/tracks.py)
     operator: str = DEFAULT_OPERATOR           # the grid's operator profile
     final_checkpoint: str = "last"             # the grid's (harness/results.py)
-    demo_actions: str = "executed"             # the grid's (bench run --demo-actions)
+    demo_actions: str = DEFAULT_DEMO_ACTIONS   # the grid's (bench run --demo-actions)
 
     @property
     def train_cell(self) -> "Cell":
@@ -116,7 +116,7 @@ class Cell:
         tag += "" if self.track == DEFAULT_TRACK else f"-{self.track}"   # as bench leaderboard does
         tag += "" if self.operator == DEFAULT_OPERATOR else f"-{self.operator}"
         tag += "" if self.final_checkpoint == "last" else f"-{self.final_checkpoint}"
-        tag += "" if self.demo_actions == "executed" else f"-{self.demo_actions}"
+        tag += "" if self.demo_actions == DEFAULT_DEMO_ACTIONS else f"-{self.demo_actions}"
         return f"{self.on or self.env_id}/{self.method}{tag}-{self.profile}-s{self.seed}"
 
     def path(self, out: Path) -> Path:
@@ -201,7 +201,7 @@ def load_grid(path: str | os.PathLike) -> Grid:
     operator = doc.get("operator", DEFAULT_OPERATOR)
     if operator not in OPERATORS:
         _fail(path, f"operator = {operator!r}; allowed: {', '.join(sorted(OPERATORS))}")
-    demo_actions = doc.get("demo_actions", "executed")
+    demo_actions = doc.get("demo_actions", DEFAULT_DEMO_ACTIONS)
     if demo_actions not in DEMO_ACTIONS:
         _fail(path, f"demo_actions = {demo_actions!r}; allowed: {', '.join(DEMO_ACTIONS)}")
     track = doc.get("track", DEFAULT_TRACK)
@@ -259,6 +259,12 @@ def load_grid(path: str | os.PathLike) -> Grid:
         cfg = spec.get("agent_config", {})
         if not isinstance(cfg, dict):
             _fail(path, f"{block}.agent_config must be a table, got {cfg!r}")
+        preset = spec.get("preset")     # a published agent config (bench run --preset)
+        if preset is not None:
+            try:
+                cfg = {**get_preset(preset), **cfg}
+            except (ValueError, TypeError) as e:
+                _fail(path, f"{block}.preset = {preset!r}: {str(e).splitlines()[0]}")
         for k, v in cfg.items():
             where = f"{block}.agent_config.{k}"
             if not re.match(FIELD_NAME, k):
@@ -371,6 +377,9 @@ def cell_status(cell: Cell, grid: Grid, out: Path) -> str:
                 f"the grid asks for M = {grid.M} on {grid.seed_set!r}")
     r = _read_json(p / "results.json")
     if r is not None:
+        if revision_of(r) != DEFAULTS_REVISION:
+            return (f"conflict: {p} holds a run made under revision {revision_of(r)} of the "
+                    f"defaults (now {DEFAULTS_REVISION}); move it away to rerun it")
         fe = _obj(r.get("final_eval"))
         if (fe.get("episodes"), fe.get("seed_set"), fe.get("checkpoint", "last")) == \
                 (grid.M, grid.seed_set, cell.final_checkpoint):
@@ -551,8 +560,7 @@ def cell_command(cell: Cell, grid: Grid, out: Path, resume: bool,
                     "--demos", str(demos_dir(cell, grid, out)),
                     "--final-episodes", str(grid.M), "--final-seed-set", grid.seed_set]
     argv += _eval_workers(grid)
-    if cell.demo_actions != "executed":
-        argv += ["--demo-actions", cell.demo_actions]
+    argv += ["--demo-actions", cell.demo_actions]
     if cell.final_checkpoint != "last":
         argv += ["--final-checkpoint", cell.final_checkpoint]
     if stage1_cache:

@@ -36,6 +36,7 @@ headline are regenerated with::
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import os
@@ -48,6 +49,7 @@ import numpy as np
 
 from window_bench.harness.evaluation import atomic_write, atomic_write_text
 from window_bench.harness.methods import METHODS, get_preset
+from window_bench.harness.results import DEFAULTS_REVISION, REVISION_DEFAULTS, revision_of
 from window_bench.harness.seeds import seed_set_of
 from window_bench.harness.tracks import get_track
 
@@ -58,6 +60,11 @@ N_BOOT = 10_000
 RATE_WINDOW = 20
 STEPS_PER_HOUR = 36_000
 STEP_S = 0.1
+#: The caption's sentence on rows of an earlier revision of the defaults (harness/results.py).
+REVISION_NOTES = {1: ("were run under revision 1 of the defaults (the `average` installer, "
+                      "D_demo as executed, QC-FQL without the fine pose and grasp features and "
+                      "action companding; [revisions](tables.md#revisions-of-the-defaults)); "
+                      "each leaves the table when its method is re-run under the current ones.")}
 
 
 # ---------------------------------------------------------------------------- raw files
@@ -91,6 +98,14 @@ class RowKey:
     M: int
     track: str
     panel: str = "0.5x0.5"
+    defaults: int = DEFAULTS_REVISION   # the revision of the defaults it was run under
+
+    def superseded_by(self, other: "RowKey") -> bool:
+        """A row of earlier defaults whose method (same setting, h, run and panel) has a row
+        under the current defaults: it leaves the tables."""
+        return self.defaults < other.defaults == DEFAULTS_REVISION and \
+            dataclasses.replace(self, overrides=(), defaults=0) == \
+            dataclasses.replace(other, overrides=(), defaults=0)
 
 
 def _final(r: dict) -> tuple[dict, str, int]:
@@ -103,15 +118,14 @@ def _final(r: dict) -> tuple[dict, str, int]:
 
 
 def _overrides(r: dict) -> tuple:
-    """A row's departures from the method's defaults: its agent-config overrides and, when
-    its demonstrations and takeovers came from another operator profile than the paper's
-    `average`, that profile; learners trained on the demonstrator's meant actions; and a final checkpoint chosen on the dev seeds (cells that
-    differ in any never share a row)."""
+    """A row's departures from the defaults of the revision it was run under: its agent-config
+    overrides, the operator profile of its demonstrations and takeovers and the D_demo labels
+    where they are not the revision's, and a final checkpoint chosen on the dev seeds (cells
+    that differ in any never share a row)."""
     pairs = dict(r.get("agent_config_overrides") or {})
-    if r.get("operator", "average") != "average":
-        pairs["operator"] = r["operator"]
-    if r.get("demo_actions", "executed") != "executed":
-        pairs["demo_actions"] = r["demo_actions"]
+    for k, v in REVISION_DEFAULTS[revision_of(r)].items():
+        if r.get(k, v) != v:
+            pairs[k] = r[k]
     if (r.get("final_eval") or {}).get("checkpoint", "last") != "last":
         pairs["final_checkpoint"] = r["final_eval"]["checkpoint"]
     return tuple(sorted((k, json.dumps(v)) for k, v in pairs.items()))
@@ -146,7 +160,8 @@ def load_runs(root: str | os.PathLike) -> dict[RowKey, list[Sample]]:
         fe, seed_set, M = _final(r)
         f = r["final"]
         key = RowKey(setting_of[r["env_id"]], r["method"]["name"], r["method"]["h"],
-                     _overrides(r), r["profile"]["name"], seed_set, M, r.get("track", "state"))
+                     _overrides(r), r["profile"]["name"], seed_set, M, r.get("track", "state"),
+                     defaults=revision_of(r))
         m = r["method"]
         rows[key].append(Sample(
             r["seed"], fe["success_rate"], fe.get("cycle_time_s"), fe.get("pr_S"),
@@ -159,7 +174,7 @@ def load_runs(root: str | os.PathLike) -> dict[RowKey, list[Sample]]:
                          for c in r.get("checkpoints") or []]))
         for panel_id, panel in PANELS.items():
             ood = r["env_id"].replace("-v0", f"-{panel_id}-v0")
-            ev_path = root / ood / f"{path.parent.name}.json"
+            ev_path = path.parent.parent.parent / ood / f"{path.parent.name}.json"   # beside
             if not ev_path.is_file():
                 continue
             try:
@@ -168,12 +183,13 @@ def load_runs(root: str | os.PathLike) -> dict[RowKey, list[Sample]]:
                 _skip(e)
                 continue
             ekey = RowKey(key.setting, key.method, key.h, key.overrides, key.profile,
-                          ev["seed_set"], ev["episodes"], key.track, panel)
+                          ev["seed_set"], ev["episodes"], key.track, panel, key.defaults)
             rows[ekey].append(Sample(r["seed"], ev["success_rate"], ev.get("cycle_time_s"),
                                      ev.get("pr_S"), ev.get("pr_I_given_S"),
                                      ev.get("pr_T_given_I"),
                                      path=str(ev_path.relative_to(root))))
-    return {k: sorted(v, key=lambda s: s.seed) for k, v in rows.items()}
+    return {k: sorted(v, key=lambda s: s.seed) for k, v in rows.items()
+            if not any(k.superseded_by(o) for o in rows)}
 
 
 def load_paper(path: str | os.PathLike = PAPER_CSV) -> dict[tuple, dict]:
@@ -332,6 +348,8 @@ class RowNames:
             out.append("*dev*" if markdown else "dev")
         elif key.seed_set != seed_set:
             out.append(key.seed_set)
+        if key.defaults < DEFAULTS_REVISION:
+            out.append(f"*defaults {key.defaults}*" if markdown else f"defaults {key.defaults}")
         return out
 
     def _name(self, first: str, key: RowKey, markdown: bool) -> str:
@@ -448,6 +466,8 @@ def _caption(keys) -> str:
         text += (" Rows marked *dev* were measured on the development seeds 100000… that our "
                  "QC-FQL choices were tuned on: optimistic by construction, not comparable "
                  "with test-seed rows.")
+    for rev in sorted({k.defaults for k in keys} - {DEFAULTS_REVISION}):
+        text += f" Rows marked *defaults {rev}* {REVISION_NOTES[rev]}"
     return text
 
 
@@ -766,6 +786,19 @@ tuning run ever evaluated on (`window_bench/harness/seeds.py`). The rule:
   protocol record only `eval_seeds`, which start at 100000: development seeds), and every
   table row says so too (*dev* marks development-seed rows).
 
+## Revisions of the defaults
+
+Each results file records the revision of the shipped defaults it was run under
+(`defaults`), and a row's variant names only its departures from its own revision's defaults.
+
+| revision | installer (`--operator`) | D_demo labels (`--demo-actions`) | QC-FQL's run config |
+|---|---|---|---|
+| 1 | `average` | `executed` | the paper's observation and action units |
+| 2 (current) | `attentive-flush` | `meant` | `fine_pose_mm=10 fine_pose_deg=2 grasp_mm=10 action_power=2` ([QC-FQL](../qcfql.md)) |
+
+A row of an earlier revision stays in a table, marked *defaults 1*, until its method is
+re-run under the current defaults; then it leaves the table (its raw files stay in git).
+
 Runs: {n_runs} training runs and {n_evals} evaluation-only cells. How the grids behind these
 tables are run (Ray, resuming, the Stage I cache) and what it measured: [Running the
 grids](sweep.md).
@@ -801,7 +834,9 @@ def headline(rows, paper, profile: str = "cpu") -> str:
                     (setting, method, overrides, "state", profile, "test", "0.5x0.5")
                     and k.h == METHODS[method].h]
             ss = rows[keys[0]] if keys else []
-            ours = (f"{cell([s.success for s in ss], 100)} (n = {len(ss)})"
+            old = f", defaults {keys[0].defaults}" if keys and keys[0].defaults < \
+                DEFAULTS_REVISION else ""
+            ours = (f"{cell([s.success for s in ss], 100)} (n = {len(ss)}{old})"
                     if ss else "not run yet")
             p = paper.get((table, setting, method, METHODS[method].h, "0.5x0.5"))
             cols += [ours, _paper(p, "final_success_pct")]   # the paper ran one QC-FQL

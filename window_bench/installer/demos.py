@@ -28,7 +28,7 @@ import numpy as np
 from window_bench.data.dataset import load_episodes, save_episodes
 from window_bench.data.effort import effort_minutes, takeover_count
 from window_bench.harness.evaluation import atomic_write_text, provenance
-from window_bench.installer.operators import HumanlikeInstaller, get_operator
+from window_bench.installer.operators import DEFAULT_OPERATOR, HumanlikeInstaller, get_operator
 from window_bench.installer.rollout import Rollout
 from window_bench.data.steplog import STEP_DT, EpisodeLog
 from window_bench.envs.task import FAILURE_MODE_NAMES
@@ -102,7 +102,7 @@ def _read_partial(path: Path, env_id: str, operator: str) -> tuple[EpisodeLog | 
     return log, row
 
 
-def collect_demos(env_id: str, n: int, out: str | os.PathLike, *, operator: str = "average",
+def collect_demos(env_id: str, n: int, out: str | os.PathLike, *, operator: str = DEFAULT_OPERATOR,
                   seed: int = 0, max_attempts: int | None = None, progress: bool = True) -> dict:
     """Collect ``n`` successful demonstrations into ``out`` (a Minari datasets root).
 
@@ -185,7 +185,8 @@ def collect_demos(env_id: str, n: int, out: str | os.PathLike, *, operator: str 
     return summary
 
 
-def load_demos(out: str | os.PathLike, env_id: str, operator: str = "average") -> list[EpisodeLog]:
+def load_demos(out: str | os.PathLike, env_id: str,
+               operator: str = DEFAULT_OPERATOR) -> list[EpisodeLog]:
     """The demonstrations :func:`collect_demos` wrote for ``env_id`` and ``operator``."""
     return load_episodes(demo_dataset_id(env_id, operator), data_path=out)
 

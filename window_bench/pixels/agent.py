@@ -91,11 +91,14 @@ class PixelAgent(Agent):
 
     @classmethod
     def make_config(cls, h: int, profile, overrides: dict):
-        """The inner learner's config; features that read the flat state are refused here,
-        before a run writes any file."""
-        from window_bench.installer.supervisor import check_flat_state_fields
+        """The inner learner's config; features that read the flat state are off here unless
+        ``overrides`` asks for one, which is refused before a run writes any file."""
+        from window_bench.installer.supervisor import STATE_ONLY_FIELDS, check_flat_state_fields
 
         config = cls.inner_class().make_config(h, profile, overrides)
+        off = {f: (0.0 if isinstance(getattr(config, f), (int, float)) else None)
+               for f in STATE_ONLY_FIELDS if getattr(config, f, None) and f not in overrides}
+        config = dataclasses.replace(config, **off)
         check_flat_state_fields(config, "the pixel track (cameras and proprioception)")
         return config
 
