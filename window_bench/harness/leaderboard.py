@@ -31,7 +31,7 @@ from window_bench.harness.evaluation import atomic_write_text
 from window_bench.harness.files import MANIFEST, read_manifest
 from window_bench.harness.methods import METHODS
 from window_bench.harness.tracks import DEFAULT_TRACK
-from window_bench.harness.results import REVISION_DEFAULTS, revision_of
+from window_bench.harness.results import departures
 from window_bench.harness.schemas import RUN_FILES, SAFE_NAME, check_results, md_text, \
     results_schema  # noqa: F401  (results_schema: the leaderboard's schema, documented here)
 
@@ -58,16 +58,9 @@ def _pose_readout(results: dict) -> str | None:
     return sha[:12] if isinstance(sha, str) and re.fullmatch(r"[0-9a-f]{64}", sha) else None
 
 
-def _departures(results: dict) -> dict:
-    """The run's operator profile and D_demo labels where they depart from the defaults of
-    the revision it was made under (:data:`~window_bench.harness.results.REVISION_DEFAULTS`)."""
-    defaults = REVISION_DEFAULTS.get(revision_of(results), {})
-    return {k: results.get(k, v) for k, v in defaults.items() if results.get(k, v) != v}
-
-
 def _operator(results: dict) -> str | None:
     """The run's operator profile where it is not its revision's default, else None."""
-    return _departures(results).get("operator")
+    return departures(results).get("operator")
 
 
 def run_dest(results: dict, root: str | os.PathLike) -> Path:
@@ -88,7 +81,7 @@ def run_dest(results: dict, root: str | os.PathLike) -> Path:
         tag += f"-{operator}"
     choice = (results.get("final_eval") or {}).get("checkpoint", "last")
     tag += "" if choice == "last" else f"-{choice}"     # --final-checkpoint best-dev
-    demo = _departures(results).get("demo_actions")                      # --demo-actions
+    demo = departures(results).get("demo_actions")                      # --demo-actions
     tag += "" if demo is None else f"-{demo}"
     name = f"{method}{tag}-{results['profile']['name']}-s{results['seed']}"
     dest = Path(root) / results["env_id"] / name
@@ -168,8 +161,9 @@ def table(results: list[dict]) -> str:
         extra = "".join(f", {k}={v}" for k, v in (r.get("agent_config_overrides") or {}).items())
         if _operator(r) is not None:
             extra += f", operator {md_text(_operator(r))}"
-        if _departures(r).get("demo_actions") is not None:
-            extra += f", {md_text(_departures(r)['demo_actions'])} demo actions"
+        demo = departures(r).get("demo_actions")
+        if demo is not None:
+            extra += f", {md_text(demo)} demo actions"
         if _pose_readout(r) is not None:
             extra += f", pose read-out {_pose_readout(r)}"
         who = (f"| {_track(r)} | {r['env_id']} | {md_text(m['label'])} (`{m['name']}`{h}"

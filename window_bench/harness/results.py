@@ -14,20 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
+from window_bench.data.steplog import DEFAULT_DEMO_ACTIONS
+from window_bench.installer.operators import DEFAULT_OPERATOR
+
 RESULTS_SCHEMA = 1
-#: The revision of the shipped defaults a run was made under (``results.json``'s ``defaults``;
-#: a file without it is revision 1). What a revision sets beside the agents' own configs: the
-#: operator profile of D_demo and the takeovers, and which of D_demo's actions learners train
-#: on. Revision 2 also changed QC-FQL's run config (``QCFQLAgent.RUN_DEFAULTS``). A row of
-#: the tables departs from its own revision's defaults, never from another's.
-DEFAULTS_REVISION = 2
-REVISION_DEFAULTS = {1: {"operator": "average", "demo_actions": "executed"},
-                     2: {"operator": "attentive-flush", "demo_actions": "meant"}}
-
-
-def revision_of(results: dict) -> int:
-    """The defaults revision a results file was made under (1 for files without one)."""
-    return results.get("defaults", 1)
 STEPS_PER_HOUR = 36_000            # 10 Hz
 LOSS_LOG_EVERY = 500    # learner calls averaged into one TensorBoard point (loss/...)
 #: Which checkpoint's policy the final evaluation runs: ``last`` (the tables' protocol) or
@@ -139,3 +129,27 @@ class Scalars:
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
+
+
+# ---------------------------------------------------------------------------- defaults revisions
+#: The revision of the shipped defaults a run was made under (``results.json``'s ``defaults``;
+#: a file without it is revision 1). What a revision sets beside the agents' own configs: the
+#: operator profile of D_demo and the takeovers, and which of D_demo's actions learners train
+#: on. Revision 2 also changed QC-FQL's run config (``QCFQLAgent.RUN_DEFAULTS``). A row of
+#: the tables departs from its own revision's defaults, never from another's.
+DEFAULTS_REVISION = 2
+REVISION_DEFAULTS = {1: {"operator": "average", "demo_actions": "executed"},
+                     DEFAULTS_REVISION: {"operator": DEFAULT_OPERATOR,
+                                         "demo_actions": DEFAULT_DEMO_ACTIONS}}
+
+
+def revision_of(results: dict) -> int:
+    """The defaults revision a results file was made under (1 for files without one)."""
+    return results.get("defaults", 1)
+
+
+def departures(results: dict) -> dict:
+    """The run's operator profile and D_demo labels where they depart from the defaults of
+    the revision it was made under (bench tables and bench leaderboard name them)."""
+    defaults = REVISION_DEFAULTS.get(revision_of(results), {})
+    return {k: results.get(k, v) for k, v in defaults.items() if results.get(k, v) != v}

@@ -65,8 +65,8 @@ from window_bench.harness.tracks import DEFAULT_TRACK, get_track
 from window_bench.installer.rollout import Rollout
 from window_bench.installer.operators import DEFAULT_OPERATOR, get_operator
 # Where scripts have imported them from; they live in agent.py and evaluation.py.
-from window_bench.harness.agent import obs_normalizer, parse_overrides  # noqa: F401, E402
-from window_bench.harness.evaluation import load_policy_file  # noqa: F401, E402
+from window_bench.harness.agent import obs_normalizer, parse_overrides  # noqa: F401
+from window_bench.harness.evaluation import load_policy_file  # noqa: F401
 
 EVAL_SEED0 = DEV_SEED0   # checkpoint evaluations use the development seeds (harness/seeds.py)
 RATE_WINDOW = 20

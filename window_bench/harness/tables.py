@@ -49,7 +49,7 @@ import numpy as np
 
 from window_bench.harness.evaluation import atomic_write, atomic_write_text
 from window_bench.harness.methods import METHODS, get_preset
-from window_bench.harness.results import DEFAULTS_REVISION, REVISION_DEFAULTS, revision_of
+from window_bench.harness.results import DEFAULTS_REVISION, departures, revision_of
 from window_bench.harness.seeds import seed_set_of
 from window_bench.harness.tracks import get_track
 
@@ -122,10 +122,7 @@ def _overrides(r: dict) -> tuple:
     overrides, the operator profile of its demonstrations and takeovers and the D_demo labels
     where they are not the revision's, and a final checkpoint chosen on the dev seeds (cells
     that differ in any never share a row)."""
-    pairs = dict(r.get("agent_config_overrides") or {})
-    for k, v in REVISION_DEFAULTS[revision_of(r)].items():
-        if r.get(k, v) != v:
-            pairs[k] = r[k]
+    pairs = {**(r.get("agent_config_overrides") or {}), **departures(r)}
     if (r.get("final_eval") or {}).get("checkpoint", "last") != "last":
         pairs["final_checkpoint"] = r["final_eval"]["checkpoint"]
     return tuple(sorted((k, json.dumps(v)) for k, v in pairs.items()))
