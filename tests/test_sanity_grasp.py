@@ -186,3 +186,17 @@ def test_demo_turnbacks_records_each_recovery_of_a_demonstration(tmp_path):
     row = json.loads(out.read_text())["operators"]["average"]
     assert row["seated"] == 2 and row["recoveries"] >= row["recoveries_within_8mm_of_stop"]
     assert row["of_which_turn_back_within_chunk"] <= row["near_steps_not_accepted_within_chunk"]
+
+
+def test_offline_continuation_refuses_bad_arguments_before_any_work(tmp_path, capsys):
+    d = _script("offline_continuation")
+    out = tmp_path / "o.json"
+    cases = ((["--operator", "nobody"], "--operator 'nobody'"),
+             (["--extra", "0"], "--extra 0; allowed: 1..200000"),
+             (["--extra", "100", "--every", "200"], "--every 200; allowed: 1..--extra (100)"),
+             ([], f"{tmp_path / 'missing.safetensors'}:"))
+    for argv, msg in cases:
+        assert d.main([str(tmp_path / "missing.safetensors"), str(tmp_path), "--env",
+                       "WindowInstall-A-v0", *argv, "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert msg in err and len(err.strip().splitlines()) == 1 and not out.exists()

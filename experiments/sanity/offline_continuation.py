@@ -1,40 +1,108 @@
-"""Does the offline policy on B change without any online data? Stage I continued on D_demo.
+r"""Does a QC-FQL policy change with more demo-only updates? Stage I continued on D_demo.
 
-Loads a Stage I cache entry (``bench run --stage1-cache DIR``), continues the same demo-only
-updates for EXTRA more gradient steps and evaluates the averaged student on the 20 dev seeds
-every EVERY updates ([the online phase on B](../../docs/results/diagnoses/b-online.md)).
+Loads a Stage I cache entry (``bench run --stage1-cache DIR`` writes one), continues the same
+demo-only updates for ``--extra`` more gradient steps and evaluates the averaged student
+(deterministic, no takeovers) on the development seeds every ``--every`` updates. It
+separates what more updates on the 50 demonstrations do from what the online data does
+([the online phase on B](../../docs/results/diagnoses/b-online.md)).
 
-    python experiments/sanity/offline_continuation.py CACHE/<key>.safetensors RUN/demos 24000 6000
+    python experiments/sanity/offline_continuation.py CACHE/<key>.safetensors RUN/demos \
+        --env WindowInstall-A-v0 --operator attentive-flush --extra 24000 --every 6000 \
+        --out experiments/sanity/results/offline_continuation_A_s1.json
 
-RUN/demos holds the run's ``attentive`` demonstrations of WindowInstall-B-v0. One process, one
-thread, about 15 minutes.
+RUN/demos holds the run's demonstrations of ``--env`` by ``--operator``. One process, one
+thread; about 20 minutes for 24,000 updates and five evaluations of 20 episodes on A.
 """
-import sys, numpy as np, torch
-from window_bench.harness.files import load_state
-from baselines.qcfql import QCFQLAgent
-from window_bench.harness.evaluation import AgentPolicy
-from window_bench.envs.wrappers import make_training_env
-from window_bench.installer.rollout import Rollout
-from window_bench.installer.demos import load_demos
-from window_bench.data.replay import ChunkReplay
-torch.set_num_threads(1)
-cache, demos_dir, extra, every = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
-tree, _ = load_state(cache, "stage1")
-agent = QCFQLAgent.from_state_dict(tree["agent"])
-torch.set_rng_state(tree["torch_rng"])
-demos = load_demos(demos_dir, "WindowInstall-B-v0", "attentive")
-rb = ChunkReplay(sum(-(-e.T // 10) for e in demos) + 10, 10, agent.config.gamma, seed=123)
-for e in demos:
-    rb.add_episode(e)
-env = make_training_env("WindowInstall-B-v0", None, obs_mode="flat", max_episode_steps=600)
-def evaluate(n=20):
-    ok = 0
-    for i in range(n):
-        log = Rollout(env, AgentPolicy(agent, True), env_id="WindowInstall-B-v0").run(seed=100000 + i)
-        ok += bool(log.terminated[-1])
-    return ok
-print("updates +0:", evaluate(), "/ 20", flush=True)
-for k in range(1, extra // every + 1):
-    for _ in range(every):
-        agent.update(rb.sample(256))
-    print(f"updates +{k * every}:", evaluate(), "/ 20", flush=True)
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from rollout_args import env_errors, episodes_errors, out_errors  # noqa: E402
+
+MAX_UPDATES = 200_000
+
+
+def main(argv=None) -> int:
+    from window_bench.installer.operators import DEFAULT_OPERATOR, OPERATORS
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("cache", help="a Stage I cache entry (.safetensors) of a qcfql run")
+    p.add_argument("demos", help="the run's demonstrations directory (RUN/demos)")
+    p.add_argument("--env", default="WindowInstall-B-v0")
+    p.add_argument("--operator", default=DEFAULT_OPERATOR, help="who demonstrated")
+    p.add_argument("--extra", type=int, default=24000, help=f"more updates (1-{MAX_UPDATES})")
+    p.add_argument("--every", type=int, default=6000, help="updates between evaluations")
+    p.add_argument("--episodes", type=int, default=20, help="dev seeds 100000.. (1-500)")
+    p.add_argument("--out", required=True, help="JSON file to write (not overwritten)")
+    args = p.parse_args(argv)
+    errs = env_errors(args.env) + episodes_errors(args.episodes) + out_errors(args.out)
+    if args.operator not in OPERATORS:
+        errs.append(f"--operator {args.operator!r}; allowed: {', '.join(OPERATORS)}")
+    if not 1 <= args.extra <= MAX_UPDATES:
+        errs.append(f"--extra {args.extra}; allowed: 1..{MAX_UPDATES}")
+    if not 1 <= args.every <= args.extra:
+        errs.append(f"--every {args.every}; allowed: 1..--extra ({args.extra})")
+    if errs:
+        print("error: " + "; ".join(errs), file=sys.stderr)
+        return 2
+
+    from baselines.qcfql import QCFQLAgent
+    from window_bench.data.replay import ChunkReplay
+    from window_bench.envs.wrappers import make_training_env
+    from window_bench.harness.evaluation import AgentPolicy, provenance
+    from window_bench.harness.files import load_state
+    from window_bench.harness.seeds import DEV_SEED0
+    from window_bench.installer.demos import load_demos
+    from window_bench.installer.rollout import Rollout
+
+    torch.set_num_threads(1)
+    try:
+        tree, _ = load_state(args.cache, "stage1")
+    except (OSError, ValueError) as e:
+        print(f"error: {args.cache}: {e}", file=sys.stderr)
+        return 2
+    agent = QCFQLAgent.from_state_dict(tree["agent"])
+    torch.set_rng_state(tree["torch_rng"])
+    demos = load_demos(args.demos, args.env, args.operator)
+    h = agent.config.h
+    rb = ChunkReplay(sum(-(-e.T // h) for e in demos) + h, h, agent.config.gamma, seed=123)
+    for e in demos:
+        rb.add_episode(e)
+    env = make_training_env(args.env, None, obs_mode="flat", max_episode_steps=600)
+
+    def evaluate() -> int:
+        rollout = Rollout(env, AgentPolicy(agent, True), env_id=args.env)
+        return sum(bool(rollout.run(seed=DEV_SEED0 + i, episode_id=i).terminated[-1])
+                   for i in range(args.episodes))
+
+    rows = [{"extra_updates": 0, "successes": evaluate()}]
+    print(json.dumps(rows[-1]), flush=True)
+    done = 0
+    while done < args.extra:
+        n = min(args.every, args.extra - done)
+        for _ in range(n):
+            agent.update(rb.sample(agent.config.batch_size))
+        done += n
+        rows.append({"extra_updates": done, "successes": evaluate()})
+        print(json.dumps(rows[-1]), flush=True)
+    env.close()
+    out = {"cache": Path(args.cache).name, "env_id": args.env, "operator": args.operator,
+           "episodes": args.episodes, "dev_seed0": DEV_SEED0, "curve": rows,
+           "successes": [r["successes"] for r in rows], "success_rate": [
+               float(np.round(r["successes"] / args.episodes, 3)) for r in rows],
+           "provenance": provenance()}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
