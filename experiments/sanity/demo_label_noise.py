@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from rollout_args import env_errors, episodes_errors, out_errors  # noqa: E402
+from rollout_args import env_errors, episodes_errors, operator_errors, out_errors  # noqa: E402
 
 BANDS_MM = ((20, 90), (90, 200), (200, 400))
 STEP_MM = 25.0          # commanded translation per action unit (s_pos = 0.025 m)
@@ -42,11 +42,8 @@ def main(argv=None) -> int:
     p.add_argument("--episodes", type=int, default=20, help="demonstrations, seeds 1,000,000-")
     p.add_argument("--out", required=True, help="JSON file to write (not overwritten)")
     args = p.parse_args(argv)
-    from window_bench.installer.operators import OPERATORS
-
-    errs = env_errors(args.env) + episodes_errors(args.episodes) + out_errors(args.out)
-    if args.operator not in OPERATORS:
-        errs.append(f"--operator {args.operator!r}; allowed: {', '.join(sorted(OPERATORS))}")
+    errs = (env_errors(args.env) + episodes_errors(args.episodes) + out_errors(args.out)
+            + operator_errors(args.operator))
     if errs:
         p.error("; ".join(errs))
 
@@ -54,7 +51,7 @@ def main(argv=None) -> int:
 
     from window_bench.envs import scene as S
     from window_bench.harness.evaluation import provenance
-    from window_bench.installer.operators import HumanlikeInstaller
+    from window_bench.installer.operators import OPERATORS, HumanlikeInstaller
     from window_bench.installer.supervisor import observation_fields
 
     profile = OPERATORS[args.operator]

@@ -25,13 +25,13 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from rollout_args import env_errors, episodes_errors, out_errors  # noqa: E402
+from rollout_args import env_errors, episodes_errors, operator_errors, out_errors  # noqa: E402
 
 MAX_UPDATES = 200_000
 
 
 def main(argv=None) -> int:
-    from window_bench.installer.operators import DEFAULT_OPERATOR, OPERATORS
+    from window_bench.installer.operators import DEFAULT_OPERATOR
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("cache", help="a Stage I cache entry (.safetensors) of a qcfql run")
@@ -43,9 +43,8 @@ def main(argv=None) -> int:
     p.add_argument("--episodes", type=int, default=20, help="dev seeds 100000.. (1-500)")
     p.add_argument("--out", required=True, help="JSON file to write (not overwritten)")
     args = p.parse_args(argv)
-    errs = env_errors(args.env) + episodes_errors(args.episodes) + out_errors(args.out)
-    if args.operator not in OPERATORS:
-        errs.append(f"--operator {args.operator!r}; allowed: {', '.join(OPERATORS)}")
+    errs = (env_errors(args.env) + episodes_errors(args.episodes) + out_errors(args.out)
+            + operator_errors(args.operator))
     if not 1 <= args.extra <= MAX_UPDATES:
         errs.append(f"--extra {args.extra}; allowed: 1..{MAX_UPDATES}")
     if not 1 <= args.every <= args.extra:

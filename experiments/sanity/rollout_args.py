@@ -1,6 +1,6 @@
 """The command-line checks the rollout diagnostics share (``chunk_replan.py``,
 ``failure_trace.py``, ``pixel_embedding_probe.py``): a registered env, a number of
-development seeds, an output file that does not exist yet; and a policy file loaded or
+development seeds, an operator profile, an output file that does not exist yet; and a policy file loaded or
 refused in one line (``pose_feedback.py``, ``pose_readout_trace.py``,
 ``state_policy_on_readout.py``). Each returns the one-line
 messages of what is wrong (empty: all good), so a script reports every problem at once and
@@ -25,6 +25,14 @@ def episodes_errors(episodes: int) -> list[str]:
     if 1 <= episodes <= MAX_EPISODES:
         return []
     return [f"--episodes {episodes}; allowed: 1..{MAX_EPISODES}"]
+
+
+def operator_errors(operator: str) -> list[str]:
+    from window_bench.installer.operators import OPERATORS
+
+    if operator in OPERATORS:
+        return []
+    return [f"--operator {operator!r}; allowed: {', '.join(sorted(OPERATORS))}"]
 
 
 def out_errors(out: str) -> list[str]:
