@@ -620,6 +620,30 @@ def test_leaderboard_add_never_replaces_a_run_without_force(tmp_path, capsys, mo
     assert dest.read_text() == (run / "results.json").read_text()
 
 
+def test_leaderboard_add_never_replaces_a_run_of_another_revision(tmp_path, capsys,
+                                                                  monkeypatch):
+    """Run names depart from each run's own revision's defaults, so a revision-2 run can have
+    the name of a revision-1 run: ``--add --force`` refuses to replace it, in one line."""
+    from window_bench.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    old = _results(tmp_path / "old", "qcfql", "WindowInstall-A-v0", 0, 0.8, defaults=None)
+    new = _results(tmp_path / "new", "qcfql", "WindowInstall-A-v0", 0, 0.5)
+    assert main(["leaderboard", "--add", str(old), "--root", "lb"]) == 0
+    dest = tmp_path / "lb" / "WindowInstall-A-v0" / "qcfql-smoke-s0" / "results.json"
+    kept = dest.read_text()
+    capsys.readouterr()
+    assert main(["leaderboard", "--add", str(new), "--root", "lb", "--force"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {dest.relative_to(tmp_path)} holds a run made under "
+                          f"revision 1 of the defaults, the new run revision "
+                          f"{DEFAULTS_REVISION}") and err.count("\n") == 1
+    assert dest.read_text() == kept
+    dest.parent.rename(tmp_path / "lb" / "WindowInstall-A-v0" / "defaults-1")   # moved away
+    assert main(["leaderboard", "--add", str(new), "--root", "lb"]) == 0
+    assert dest.read_text() == (new / "results.json").read_text()
+
+
 def test_a_row_of_earlier_defaults_is_marked_until_its_method_is_rerun(tmp_path):
     """A file without a defaults revision is revision 1: its departures are measured from
     revision 1's defaults (operator average, executed D_demo), its row is marked, and it

@@ -289,6 +289,21 @@ def _refuse_overwrite(paths, force: bool) -> None:
         raise ValueError(f"{hit} exists; pass --force to overwrite it")
 
 
+def _refuse_other_revision(dest, results: dict) -> None:
+    """A run of one revision of the defaults never replaces a run of another under the same
+    name (names depart from each run's own revision's defaults), not even with ``--force``."""
+    from window_bench.harness.results import revision_of
+
+    try:
+        old = json.loads(Path(dest).read_text())
+    except (OSError, ValueError):
+        return   # nothing there, or not a results file: --force decides
+    if isinstance(old, dict) and revision_of(old) != revision_of(results):
+        raise ValueError(f"{dest} holds a run made under revision {revision_of(old)} of the "
+                         f"defaults, the new run revision {revision_of(results)}; move it "
+                         f"away first (e.g. to a defaults-{revision_of(old)}/ folder)")
+
+
 def cmd_leaderboard(args) -> int:
     from window_bench.harness.files import check_out_dir
     from window_bench.harness.leaderboard import add_run, build, check_results, run_dest
@@ -301,8 +316,10 @@ def cmd_leaderboard(args) -> int:
                 raise ValueError(str(e).replace("--out ", "--root ", 1)) from None
         elif not Path(args.root).is_dir():
             raise ValueError(f"--root {args.root}: no such directory")
-        dests = [run_dest(check_results(Path(run_dir) / "results.json"), args.root)
-                 for run_dir in args.add or []]
+        adds = [check_results(Path(run_dir) / "results.json") for run_dir in args.add or []]
+        dests = [run_dest(r, args.root) for r in adds]
+        for results, dest in zip(adds, dests):   # --force replaces a run, never a revision's
+            _refuse_other_revision(dest / "results.json", results)
         _refuse_overwrite([d / "results.json" for d in dests]
                           + [p for p in (args.readme, args.snippet) if p], args.force)
     except (FileNotFoundError, ValueError) as e:

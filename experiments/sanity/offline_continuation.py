@@ -10,8 +10,10 @@ separates what more updates on the 50 demonstrations do from what the online dat
         --env WindowInstall-A-v0 --operator attentive-flush --extra 24000 --every 6000 \
         --out experiments/sanity/results/offline_continuation_A_s1.json
 
-RUN/demos holds the run's demonstrations of ``--env`` by ``--operator``. One process, one
-thread; about 20 minutes for 24,000 updates and five evaluations of 20 episodes on A.
+RUN/demos holds the run's demonstrations of ``--env`` by ``--operator``. ``--set KEY=VALUE``
+(repeatable) changes an agent setting for the continued updates only (``lr``, ``alpha``,
+``policy_ema`` ...), as a later phase of a run would; ``--policy teacher`` (or ``both``)
+evaluates the averaged flow teacher as well as the student. One process, one thread; about 20 minutes for 24,000 updates and five evaluations of 20 episodes on A.
 """
 
 from __future__ import annotations
@@ -41,6 +43,10 @@ def main(argv=None) -> int:
     p.add_argument("--extra", type=int, default=24000, help=f"more updates (1-{MAX_UPDATES})")
     p.add_argument("--every", type=int, default=6000, help="updates between evaluations")
     p.add_argument("--episodes", type=int, default=20, help="dev seeds 100000.. (1-500)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="an agent setting for the continued updates (repeatable)")
+    p.add_argument("--policy", choices=("student", "teacher", "both"), default="student",
+                   help="which averaged network acts in the evaluations")
     p.add_argument("--out", required=True, help="JSON file to write (not overwritten)")
     args = p.parse_args(argv)
     errs = (env_errors(args.env) + episodes_errors(args.episodes) + out_errors(args.out)
@@ -49,11 +55,18 @@ def main(argv=None) -> int:
         errs.append(f"--extra {args.extra}; allowed: 1..{MAX_UPDATES}")
     if not 1 <= args.every <= args.extra:
         errs.append(f"--every {args.every}; allowed: 1..--extra ({args.extra})")
+    from baselines.qcfql import QCFQLAgent, QCFQLConfig
+    from window_bench.harness.agent import parse_overrides, with_overrides
+
+    try:
+        overrides = parse_overrides(args.set)
+        with_overrides(QCFQLConfig(), overrides)
+    except (TypeError, ValueError) as e:
+        errs.append(f"--set: {e}")
     if errs:
         print("error: " + "; ".join(errs), file=sys.stderr)
         return 2
 
-    from baselines.qcfql import QCFQLAgent
     from window_bench.data.replay import ChunkReplay
     from window_bench.envs.wrappers import make_training_env
     from window_bench.harness.evaluation import AgentPolicy, provenance
@@ -69,6 +82,13 @@ def main(argv=None) -> int:
         print(f"error: {args.cache}: {e}", file=sys.stderr)
         return 2
     agent = QCFQLAgent.from_state_dict(tree["agent"])
+    try:   # the continued phase's settings; the optimizer's rate follows ``lr``
+        agent.config = with_overrides(agent.config, overrides)
+    except (TypeError, ValueError) as e:
+        print(f"error: --set: {e}", file=sys.stderr)
+        return 2
+    for group in agent.optimizer.param_groups:
+        group["lr"] = agent.config.lr
     torch.set_rng_state(tree["torch_rng"])
     demos = load_demos(args.demos, args.env, args.operator)
     h = agent.config.h
@@ -77,12 +97,26 @@ def main(argv=None) -> int:
         rb.add_episode(e)
     env = make_training_env(args.env, None, obs_mode="flat", max_episode_steps=600)
 
-    def evaluate() -> int:
-        rollout = Rollout(env, AgentPolicy(agent, True), env_id=args.env)
-        return sum(bool(rollout.run(seed=DEV_SEED0 + i, episode_id=i).terminated[-1])
-                   for i in range(args.episodes))
+    class Acting(AgentPolicy):   # the averaged teacher or student, deterministic
+        def __init__(self, which: str):
+            super().__init__(agent, True)
+            self.which = which
 
-    rows = [{"extra_updates": 0, "successes": evaluate()}]
+        def act(self, obs):
+            return self.agent.act(obs, deterministic=True, policy=self.which)
+
+    policies = ("student", "teacher") if args.policy == "both" else (args.policy,)
+
+    def evaluate(done: int) -> dict:
+        row = {"extra_updates": done}
+        for which in policies:
+            rollout = Rollout(env, Acting(which), env_id=args.env)
+            row["successes" if which == "student" else "teacher_successes"] = sum(
+                bool(rollout.run(seed=DEV_SEED0 + i, episode_id=i).terminated[-1])
+                for i in range(args.episodes))
+        return row
+
+    rows = [evaluate(0)]
     print(json.dumps(rows[-1]), flush=True)
     done = 0
     while done < args.extra:
@@ -90,14 +124,17 @@ def main(argv=None) -> int:
         for _ in range(n):
             agent.update(rb.sample(agent.config.batch_size))
         done += n
-        rows.append({"extra_updates": done, "successes": evaluate()})
+        rows.append(evaluate(done))
         print(json.dumps(rows[-1]), flush=True)
     env.close()
     out = {"cache": Path(args.cache).name, "env_id": args.env, "operator": args.operator,
-           "episodes": args.episodes, "dev_seed0": DEV_SEED0, "curve": rows,
-           "successes": [r["successes"] for r in rows], "success_rate": [
-               float(np.round(r["successes"] / args.episodes, 3)) for r in rows],
-           "provenance": provenance()}
+           "episodes": args.episodes, "dev_seed0": DEV_SEED0, "settings": overrides,
+           "curve": rows, "provenance": provenance()}
+    for key in ("successes", "teacher_successes"):
+        if key in rows[0]:
+            out[key] = [r[key] for r in rows]
+            out[key.replace("successes", "success_rate")] = [
+                float(np.round(r[key] / args.episodes, 3)) for r in rows]
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
     return 0
