@@ -149,6 +149,15 @@ class QCFQLConfig:
     the closed-loop success of the raw networks swings between 5 % and 70 % from one
     10k-update checkpoint to the next on WindowInstall-A (``docs/qcfql.md``)."""
 
+    online_lr: float | None = None
+    """Adam's learning rate from Stage II on (online fine-tuning); ``None``: ``lr`` throughout
+    (paper, reference). Stage I never reads it, so runs that differ only here share a Stage I
+    (``ONLINE_FIELDS``). Not in the paper: more updates at ``lr`` on the 50 demonstrations
+    past Stage I's 20,000 take both networks past their peak (WindowInstall-A, seed 1: the
+    averaged student 20 -> 15 -> 11 -> 9 -> 9 of 20 dev seeds over 24,000 further demo-only
+    updates, the averaged teacher 18 -> 17 -> 13 over 12,000), and the online phase's
+    updates do the same more slowly (``docs/results/diagnoses/a-online.md``)."""
+
     distill_from_ema: bool = True
     """Distil the student toward the averaged teacher (``ema_teacher``, rate ``policy_ema``)
     instead of the raw one (paper, reference). A stable target: over 10k updates on the
@@ -280,7 +289,8 @@ class QCFQLConfig:
                   ("obs_std_floor", 0.0, 1.0, False),
                   ("act_noise_scale", 0.0, 10.0, True), ("td_noise_scale", 0.0, 10.0, True),
                   ("distill_noise_scale", 0.0, 10.0, True),
-                  ("policy_ema", 0.0, 1.0, True))
+                  ("policy_ema", 0.0, 1.0, True)) + (
+                      (("online_lr", 0.0, 1.0, False),) if self.online_lr is not None else ())
         for name, lo, hi, lo_ok in checks:
             value = getattr(self, name)
             ok = (isinstance(value, numbers.Real) and not isinstance(value, bool)
@@ -568,6 +578,8 @@ class QCFQLAgent(Agent):
     RUN_DEFAULTS = {"fine_pose_mm": 10.0, "fine_pose_deg": 2.0, "grasp_mm": 10.0,
                     "action_power": 2.0}
 
+    ONLINE_FIELDS = ("online_lr",)
+
     @classmethod
     def make_config(cls, h: int, profile, overrides: dict) -> QCFQLConfig:
         return with_overrides(QCFQLConfig(h=h, hidden=tuple(profile.hidden),
@@ -581,6 +593,12 @@ class QCFQLAgent(Agent):
     @property
     def demo_chunk_stride(self) -> int | None:
         return self.config.demo_chunk_stride
+
+    def begin_online(self) -> None:
+        """From Stage II on, Adam steps at ``config.online_lr`` (when set)."""
+        if self.config.online_lr is not None:
+            for group in self.optimizer.param_groups:
+                group["lr"] = self.config.online_lr
 
     def learn(self, sample) -> tuple[dict[str, float], int]:
         """One :meth:`update` on one batch."""

@@ -426,3 +426,23 @@ def test_demo_chunk_stride_puts_a_window_at_every_demonstrated_step(tmp_path, mo
         Run("qcfql", "WindowInstall-A-v0", "smoke", 0, tmp_path / "bad", demos=demos_root,
             agent_config={"demo_chunk_stride": 11})
     assert not (tmp_path / "bad").exists()
+
+
+def test_online_lr_acts_from_stage_ii_and_shares_stage_i(tmp_path, demos_root):
+    """``online_lr`` is a setting of the online phase: Adam steps at it from Stage II on (and
+    after a resume), and a run that differs only there loads the other's Stage I."""
+    def run(out, **config):
+        return Run("qcfql", "WindowInstall-A-v0", "smoke", 0, tmp_path / out, demos=demos_root,
+                   progress=False, save_every_s=0.0, stage1_cache=tmp_path / "cache",
+                   agent_config=config or None)
+
+    plain_run, slow = run("plain"), run("slow", online_lr=1e-5)
+    a, b = plain_run.train(), slow.train()
+    assert a["stage1"]["key"] == b["stage1"]["key"]
+    assert (a["stage1"]["cache_hit"], b["stage1"]["cache_hit"]) == (False, True)
+    assert [g["lr"] for g in plain_run.agent.optimizer.param_groups] == [3e-4]
+    assert [g["lr"] for g in slow.agent.optimizer.param_groups] == [1e-5]
+    assert a["checkpoints"][0]["successes"] == b["checkpoints"][0]["successes"]
+    assert b["agent_config_overrides"] == {"online_lr": 1e-5}
+    with pytest.raises(ValueError, match="online_lr = 0"):
+        run("bad", online_lr=0).train()

@@ -88,6 +88,10 @@ class Agent(ABC):
     #: evaluated in that track's env.
     track: str = DEFAULT_TRACK
 
+    #: Config fields Stage I never reads (settings of the online phase): the Stage I cache's
+    #: key leaves them out, so runs that differ only there share one Stage I.
+    ONLINE_FIELDS: tuple[str, ...] = ()
+
     @classmethod
     def stage1_modules(cls) -> tuple[str, ...]:
         """The modules whose source defines what the agent's Stage I computes: the Stage I
@@ -131,6 +135,17 @@ class Agent(ABC):
         """One learner call; ``sample()`` draws one batch of chunk transitions from the
         harness's buffers (call it as often as needed, or not at all). Returns the metrics
         and the number of gradient steps taken (the harness's update credit)."""
+
+    def begin_online(self) -> None:
+        """Called by the harness as Stage II begins, and again when a run resumes in Stages
+        II-III (so it must be idempotent): settings of the online phase take effect here."""
+
+    def take_online_settings(self, other: "Agent") -> None:
+        """Set this agent's :attr:`ONLINE_FIELDS` to ``other``'s: a Stage I restored from the
+        cache keeps the settings of the run that loads it, not of the run that computed it."""
+        if self.ONLINE_FIELDS:
+            self.config = dataclasses.replace(
+                self.config, **{k: getattr(other.config, k) for k in self.ONLINE_FIELDS})
 
     def add_episode(self, log) -> None:
         """A finished training episode (only called when ``own_replay``)."""

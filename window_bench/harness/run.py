@@ -350,7 +350,9 @@ class Run:
             return self._stage_i_offline_pretraining()
         from window_bench.harness.stage1 import Stage1Cache, demos_sha256, key_material
 
-        material = key_material(self.method.agent, self.track, self.agent.hyperparameters(),
+        config = {k: v for k, v in self.agent.hyperparameters().items()
+                  if k not in self.agent.ONLINE_FIELDS}   # Stage I never reads those
+        material = key_material(self.method.agent, self.track, config,
                                 self._offline_steps(), self.profile.batch_size,
                                 demos_sha256(self._demos()), self.seed)
         self.c["stage1"] = Stage1Cache(self.stage1_cache).compute_or_load(
@@ -365,8 +367,10 @@ class Run:
                 "offline_done": self.c["offline_done"], "grad_steps": self.c["grad_steps"]}
 
     def _restore_stage_i(self, tree: dict) -> None:
-        """Stage I from a cache entry another run computed."""
-        self.agent = self.agent_cls.from_state_dict(tree["agent"])
+        """Stage I from a cache entry another run computed (with this run's settings of the
+        online phase)."""
+        own, self.agent = self.agent, self.agent_cls.from_state_dict(tree["agent"])
+        self.agent.take_online_settings(own)
         self.agent.attach_demos(self._demos())
         sd = self.demo_rb.state_dict()
         sd["rng_state"] = tree["demo_rb_rng"]
@@ -421,6 +425,7 @@ class Run:
         # Training may see a noisy acceptance sensor; evaluation always uses true acceptance.
         env = self.observation.training_env(self.env_id, self.acceptance_noise,
                                             p.max_episode_steps, observe_every=int(self.agent.h))
+        self.agent.begin_online()
         policy = AgentPolicy(self.agent, deterministic=False)
         budget = p.warm_steps if not m.online_updates else p.budget_steps
         sup = (self.observation.supervisor(InstallerSupervisor(self.operator))

@@ -138,6 +138,16 @@ class PixelAgent(Agent):
         return self.agent.config
 
     @property
+    def ONLINE_FIELDS(self) -> tuple[str, ...]:   # noqa: N802 (the learner's class attribute)
+        return self.agent.ONLINE_FIELDS
+
+    def begin_online(self) -> None:
+        self.agent.begin_online()
+
+    def take_online_settings(self, other: "PixelAgent") -> None:
+        self.agent.take_online_settings(other.agent)
+
+    @property
     def h(self) -> int:
         return int(self.agent.h)
 
