@@ -156,7 +156,7 @@ class QCFQLConfig:
     past Stage I's 20,000 take both networks past their peak (WindowInstall-A, seed 1: the
     averaged student 20 -> 15 -> 11 -> 9 -> 9 of 20 dev seeds over 24,000 further demo-only
     updates, the averaged teacher 18 -> 17 -> 13 over 12,000), and the online phase's
-    updates do the same more slowly (``docs/results/diagnoses/a-online.md``)."""
+    updates do the same more slowly (``docs/results/diagnoses/online-phase-a.md``)."""
 
     distill_from_ema: bool = True
     """Distil the student toward the averaged teacher (``ema_teacher``, rate ``policy_ema``)

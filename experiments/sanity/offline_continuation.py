@@ -2,7 +2,8 @@ r"""Does a QC-FQL policy change with more demo-only updates? Stage I continued o
 
 Loads a Stage I cache entry (``bench run --stage1-cache DIR`` writes one), continues the same
 demo-only updates for ``--extra`` more gradient steps and evaluates the averaged student
-(deterministic, no takeovers) on the development seeds every ``--every`` updates. It
+(deterministic, no takeovers) on the development seeds every ``--every`` updates,
+rewriting ``--out`` after each evaluation (``finished`` false until the last). It
 separates what more updates on the 50 demonstrations do from what the online data does
 ([the online phase on B](../../docs/results/diagnoses/b-online.md)).
 
@@ -116,8 +117,24 @@ def main(argv=None) -> int:
                 for i in range(args.episodes))
         return row
 
+    def write(rows: list[dict], finished: bool) -> None:   # after every evaluation
+        out = {"cache": Path(args.cache).name, "env_id": args.env, "operator": args.operator,
+               "episodes": args.episodes, "dev_seed0": DEV_SEED0, "settings": overrides,
+               "extra": args.extra, "finished": finished, "curve": rows,
+               "provenance": provenance()}
+        for key in ("successes", "teacher_successes"):
+            if key in rows[0]:
+                out[key] = [r[key] for r in rows]
+                out[key.replace("successes", "success_rate")] = [
+                    float(np.round(r[key] / args.episodes, 3)) for r in rows]
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(args.out + ".tmp")
+        tmp.write_text(json.dumps(out, indent=1) + "\n")
+        tmp.replace(args.out)
+
     rows = [evaluate(0)]
     print(json.dumps(rows[-1]), flush=True)
+    write(rows, False)
     done = 0
     while done < args.extra:
         n = min(args.every, args.extra - done)
@@ -126,17 +143,8 @@ def main(argv=None) -> int:
         done += n
         rows.append(evaluate(done))
         print(json.dumps(rows[-1]), flush=True)
+        write(rows, done >= args.extra)
     env.close()
-    out = {"cache": Path(args.cache).name, "env_id": args.env, "operator": args.operator,
-           "episodes": args.episodes, "dev_seed0": DEV_SEED0, "settings": overrides,
-           "curve": rows, "provenance": provenance()}
-    for key in ("successes", "teacher_successes"):
-        if key in rows[0]:
-            out[key] = [r[key] for r in rows]
-            out[key.replace("successes", "success_rate")] = [
-                float(np.round(r[key] / args.episodes, 3)) for r in rows]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
     return 0
 
 
