@@ -156,7 +156,7 @@ class QCFQLConfig:
     past Stage I's 20,000 take both networks past their peak (WindowInstall-A, seed 1: the
     averaged student 20 -> 15 -> 11 -> 9 -> 9 of 20 dev seeds over 24,000 further demo-only
     updates, the averaged teacher 18 -> 17 -> 13 over 12,000), and the online phase's
-    updates do the same more slowly (``docs/results/diagnoses/online-phase-a.md``)."""
+    updates do the same more slowly (``docs/results/diagnoses/online-decline-a.md``)."""
 
     distill_from_ema: bool = True
     """Distil the student toward the averaged teacher (``ema_teacher``, rate ``policy_ema``)
@@ -357,7 +357,7 @@ class QCFQLConfig:
 #: ``--agent-config`` overrides that give the paper's and the reference's agent back.
 PAPER_AGENT = {"act_noise_scale": 1.0, "td_noise_scale": 1.0, "distill_noise_scale": 1.0,
                "policy_ema": 0.0, "distill_from_ema": False, "prior_data": "replay",
-               "fine_pose_mm": 0.0, "grasp_mm": 0.0, "action_power": 1.0}
+               "fine_pose_mm": 0.0, "grasp_mm": 0.0, "action_power": 1.0, "online_lr": None}
 
 #: Named configurations: ``paper`` (Table 8's sizes, 4 x 512, with our defaults) and ``cpu`` (2 x 256 networks, about 6x
 #: faster updates on one CPU thread; ``benchmarks/update_speed.py`` measures both).
@@ -571,12 +571,13 @@ class QCFQLAgent(Agent):
         self.update_generator = torch.Generator().manual_seed(self.seed + 2)
 
     # ------------------------------------------------------------------ the harness's interface
-    #: What ``bench run`` sets beside the config's defaults (revision 2 of the defaults, not in
-    #: the paper; ``--agent-config`` entries win): the fine pose and grasp features and action
-    #: companding, which seat setting B (docs/results/diagnoses/b-resolution.md).
-    #: ``PAPER_AGENT`` turns them off.
+    #: What ``bench run`` sets beside the config's defaults (not in the paper; ``--agent-config``
+    #: entries win): the fine pose and grasp features and action companding, which seat
+    #: setting B (revision 2 of the defaults; docs/results/diagnoses/b-resolution.md), and a
+    #: 10x lower learning rate online, which keeps Stage I's peak on A (revision 3;
+    #: docs/results/diagnoses/online-decline-a.md). ``PAPER_AGENT`` turns them off.
     RUN_DEFAULTS = {"fine_pose_mm": 10.0, "fine_pose_deg": 2.0, "grasp_mm": 10.0,
-                    "action_power": 2.0}
+                    "action_power": 2.0, "online_lr": 3e-5}
 
     ONLINE_FIELDS = ("online_lr",)
 

@@ -135,10 +135,12 @@ class Scalars:
 #: The revision of the shipped defaults a run was made under (``results.json``'s ``defaults``;
 #: a file without it is revision 1). What a revision sets beside the agents' own configs: the
 #: operator profile of D_demo and the takeovers, and which of D_demo's actions learners train
-#: on. Revision 2 also changed QC-FQL's run config (``QCFQLAgent.RUN_DEFAULTS``). A row of
-#: the tables departs from its own revision's defaults, never from another's.
-DEFAULTS_REVISION = 2
+#: on. Revision 2 also changed QC-FQL's run config (``QCFQLAgent.RUN_DEFAULTS``); revision 3
+#: only that (``online_lr``). A row of the tables departs from its own revision's defaults,
+#: never from another's.
+DEFAULTS_REVISION = 3
 REVISION_DEFAULTS = {1: {"operator": "average", "demo_actions": "executed"},
+                     2: {"operator": DEFAULT_OPERATOR, "demo_actions": DEFAULT_DEMO_ACTIONS},
                      DEFAULTS_REVISION: {"operator": DEFAULT_OPERATOR,
                                          "demo_actions": DEFAULT_DEMO_ACTIONS}}
 

@@ -154,7 +154,7 @@ def results_schema() -> dict:
             "track": {"enum": list(TRACKS)},
             "agent_config_overrides": _opt({
                 "type": "object", "propertyNames": {"pattern": FIELD_NAME},
-                "additionalProperties": {"anyOf": [{"type": ["number", "boolean"]}, safe,
+                "additionalProperties": {"anyOf": [{"type": ["number", "boolean", "null"]}, safe,
                                                    {"type": "array", "items": {"anyOf": [
                                                        {"type": "number"}, safe]}}]}}),
             "final": {"type": "object",
