@@ -64,6 +64,9 @@ STEP_S = 0.1
 REVISION_NOTES = {1: ("were run under revision 1 of the defaults (the `average` installer, "
                       "D_demo as executed, QC-FQL without the fine pose and grasp features and "
                       "action companding; [revisions](tables.md#revisions-of-the-defaults)); "
+                      "each leaves the table when its method is re-run under the current ones."),
+                  2: ("were run under revision 2 of the defaults (QC-FQL fine-tuned online at "
+                      "Stage I's learning rate; [revisions](tables.md#revisions-of-the-defaults)); "
                       "each leaves the table when its method is re-run under the current ones.")}
 
 
@@ -791,9 +794,10 @@ Each results file records the revision of the shipped defaults it was run under
 | revision | installer (`--operator`) | D_demo labels (`--demo-actions`) | QC-FQL's run config |
 |---|---|---|---|
 | 1 | `average` | `executed` | the paper's observation and action units |
-| 2 (current) | `attentive-flush` | `meant` | `fine_pose_mm=10 fine_pose_deg=2 grasp_mm=10 action_power=2` ([QC-FQL](../qcfql.md)) |
+| 2 | `attentive-flush` | `meant` | `fine_pose_mm=10 fine_pose_deg=2 grasp_mm=10 action_power=2` ([QC-FQL](../qcfql.md)) |
+| 3 (current) | `attentive-flush` | `meant` | revision 2's and `online_lr=3e-5` ([why](diagnoses/online-decline-a.md)) |
 
-A row of an earlier revision stays in a table, marked *defaults 1*, until its method is
+A row of an earlier revision stays in a table, marked *defaults 1* (or *2*), until its method is
 re-run under the current defaults; then it leaves the table (its raw files stay in git).
 
 Runs: {n_runs} training runs and {n_evals} evaluation-only cells. How the grids behind these
