@@ -436,7 +436,7 @@ def test_online_lr_acts_from_stage_ii_and_shares_stage_i(tmp_path, demos_root):
                    progress=False, save_every_s=0.0, stage1_cache=tmp_path / "cache",
                    agent_config=config or None)
 
-    plain_run, slow = run("plain"), run("slow", online_lr=1e-5)
+    plain_run, slow = run("plain", online_lr=None), run("slow", online_lr=1e-5)
     a, b = plain_run.train(), slow.train()
     assert a["stage1"]["key"] == b["stage1"]["key"]
     assert (a["stage1"]["cache_hit"], b["stage1"]["cache_hit"]) == (False, True)
@@ -444,5 +444,8 @@ def test_online_lr_acts_from_stage_ii_and_shares_stage_i(tmp_path, demos_root):
     assert [g["lr"] for g in slow.agent.optimizer.param_groups] == [1e-5]
     assert a["checkpoints"][0]["successes"] == b["checkpoints"][0]["successes"]
     assert b["agent_config_overrides"] == {"online_lr": 1e-5}
+    from baselines.qcfql import QCFQLAgent
+    from window_bench.harness.methods import get_profile
+    assert QCFQLAgent.make_config(10, get_profile("smoke"), {}).online_lr == 3e-5  # bench run's
     with pytest.raises(ValueError, match="online_lr = 0"):
         run("bad", online_lr=0).train()

@@ -189,6 +189,10 @@ class Agent(ABC):
         cfg = getattr(self, "config", None)
         return plain(dataclasses.asdict(cfg)) if dataclasses.is_dataclass(cfg) else {}
 
+    def stage1_hyperparameters(self) -> dict:
+        """:meth:`hyperparameters` without :attr:`ONLINE_FIELDS`: what Stage I depends on."""
+        return {k: v for k, v in self.hyperparameters().items() if k not in self.ONLINE_FIELDS}
+
 
 # ---------------------------------------------------------------------------- building one
 def make_agent(method, profile, demos: list, seed: int, overrides: dict | None = None,

@@ -344,16 +344,13 @@ class Run:
         self._checkpoint_state()
 
     def _stage_i_cached(self) -> None:
-        """Stage I, or its cached result when ``stage1_cache`` is set and a run with the same
-        agent, config, h, demonstrations and seed computed it (harness/stage1.py)."""
+        """Stage I, or the cached one of a run with the same agent, config, h, demos, seed."""
         if self.stage1_cache is None or not self.method.offline_pretrain:
             return self._stage_i_offline_pretraining()
         from window_bench.harness.stage1 import Stage1Cache, demos_sha256, key_material
 
-        config = {k: v for k, v in self.agent.hyperparameters().items()
-                  if k not in self.agent.ONLINE_FIELDS}   # Stage I never reads those
-        material = key_material(self.method.agent, self.track, config,
-                                self._offline_steps(), self.profile.batch_size,
+        material = key_material(self.method.agent, self.track,
+                                self.agent.stage1_hyperparameters(), self._offline_steps(), self.profile.batch_size,
                                 demos_sha256(self._demos()), self.seed)
         self.c["stage1"] = Stage1Cache(self.stage1_cache).compute_or_load(
             material, self._stage_i_entry, self._restore_stage_i)
@@ -367,8 +364,7 @@ class Run:
                 "offline_done": self.c["offline_done"], "grad_steps": self.c["grad_steps"]}
 
     def _restore_stage_i(self, tree: dict) -> None:
-        """Stage I from a cache entry another run computed (with this run's settings of the
-        online phase)."""
+        """Stage I from a cache entry another run computed (this run's online settings)."""
         own, self.agent = self.agent, self.agent_cls.from_state_dict(tree["agent"])
         self.agent.take_online_settings(own)
         self.agent.attach_demos(self._demos())

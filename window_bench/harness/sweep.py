@@ -274,6 +274,8 @@ def load_grid(path: str | os.PathLike) -> Grid:
                 _fail(path, f"{where}: set the chunk horizon with the block's h = [...]")
             items = v if isinstance(v, list) else [v]
             for x in items:
+                if x is None and not isinstance(v, list):   # a preset's "off" (TOML has no null)
+                    continue
                 if isinstance(x, float) and not math.isfinite(x):
                     _fail(path, f"{where} = {v!r}; allowed: finite numbers")
                 if isinstance(x, str) and not SAFE_NAME.match(x):
