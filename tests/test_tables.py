@@ -644,6 +644,23 @@ def test_leaderboard_add_never_replaces_a_run_of_another_revision(tmp_path, caps
     assert dest.read_text() == (new / "results.json").read_text()
 
 
+def test_the_leaderboard_marks_a_run_of_earlier_defaults(tmp_path):
+    """Two runs of one name under different revisions must not read as the same run: the
+    leaderboard marks the older one *defaults N*, as the tables do, and says what that means."""
+    from window_bench.harness.leaderboard import build as leaderboard
+
+    _results(tmp_path / "lb" / "defaults-1", "qcfql", "WindowInstall-B-v0", 1, 0.8, defaults=None)
+    _results(tmp_path / "lb", "qcfql", "WindowInstall-B-v0", 1, 0.9)
+    body = leaderboard(tmp_path / "lb")
+    rows = [ln for ln in body.splitlines() if ln.startswith("| state | WindowInstall-B-v0")]
+    assert len(rows) == 4                               # two runs, in both tables
+    old = [ln for ln in rows if "*defaults 1*" in ln]
+    assert len(old) == 2 and all("| 80 [" in ln for ln in old[:1])
+    assert not any(f"*defaults {DEFAULTS_REVISION}*" in ln for ln in rows)
+    assert f"*defaults N*: run under revision N of the shipped defaults (now " \
+           f"{DEFAULTS_REVISION})" in body
+
+
 def test_a_row_of_earlier_defaults_is_marked_until_its_method_is_rerun(tmp_path):
     """A file without a defaults revision is revision 1: its departures are measured from
     revision 1's defaults (operator average, executed D_demo), its row is marked, and it

@@ -31,7 +31,7 @@ from window_bench.harness.evaluation import atomic_write_text
 from window_bench.harness.files import MANIFEST, read_manifest
 from window_bench.harness.methods import METHODS
 from window_bench.harness.tracks import DEFAULT_TRACK
-from window_bench.harness.results import departures
+from window_bench.harness.results import DEFAULTS_REVISION, departures, revision_of
 from window_bench.harness.schemas import RUN_FILES, SAFE_NAME, check_results, md_text, \
     results_schema  # noqa: F401  (results_schema: the leaderboard's schema, documented here)
 
@@ -166,6 +166,8 @@ def table(results: list[dict]) -> str:
             extra += f", {md_text(demo)} demo actions"
         if _pose_readout(r) is not None:
             extra += f", pose read-out {_pose_readout(r)}"
+        if revision_of(r) != DEFAULTS_REVISION:     # as the tables mark it
+            extra += f", *defaults {revision_of(r)}*"
         who = (f"| {_track(r)} | {r['env_id']} | {md_text(m['label'])} (`{m['name']}`{h}"
                f"{extra}) | {r['profile']['name']} | {r['seed']} |")
         lines.append(
@@ -195,6 +197,9 @@ def build(root: str | os.PathLike = "leaderboard/runs", readme: str | os.PathLik
             "(100000…, the seeds our QC-FQL choices were tuned on: optimistic by "
             "construction) or the held-out `test` seeds (500000…); see "
             "`window_bench/harness/seeds.py`.\n"
+            f"*defaults N*: run under revision N of the shipped defaults (now "
+            f"{DEFAULTS_REVISION}); a run's options name only its departures from its own "
+            "revision's defaults (docs/results/tables.md, revisions of the defaults).\n"
             "³ Observation track: `state` = privileged state (the 52-float simulator state, "
             "with the panel's exact pose relative to the seat); `pixels` = the paper's wrist "
             "and side RGB views through a frozen ResNet-10 plus 18 proprioceptive values; "
