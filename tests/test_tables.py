@@ -367,6 +367,33 @@ def test_headline_rows_come_from_test_seed_runs_only(tmp_path):
     assert complete.count("not run yet") == 2
 
 
+def test_headline_finds_the_published_agent_of_an_earlier_revision(tmp_path):
+    """An earlier revision's run of the preset qcfql-as-published carries only the entries
+    that made it the paper's agent then (later revisions' run defaults did not exist): the
+    headline shows it, marked, and not a run that departs from the preset."""
+    from window_bench.harness.methods import get_preset
+    from window_bench.harness.tables import headline, load_paper, load_runs
+
+    preset = get_preset("qcfql-as-published")
+    then = {k: v for k, v in preset.items()
+            if k in ("act_noise_scale", "td_noise_scale", "distill_noise_scale", "policy_ema",
+                     "distill_from_ema", "prior_data")}
+    runs = tmp_path / "runs"
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.06, overrides=then, operator="average",
+             defaults=None)
+    _results(runs, "qcfql", "WindowInstall-B-v0", 0, 0.5,
+             overrides={**then, "policy_ema": 0.005}, operator="average", defaults=None)
+
+    def published():
+        text = headline(load_runs(runs), load_paper(), profile="smoke")
+        return next(ln for ln in text.splitlines() if ln.startswith("| QC-FQL as published"))
+
+    line = published()
+    assert "| **6** (n = 1, defaults 1) | 100 [96, 100] | not run yet |" in line
+    _results(runs, "qcfql", "WindowInstall-A-v0", 0, 0.3, overrides=preset)
+    assert "| **30** (n = 1) | 100 [96, 100] |" in published()
+
+
 def test_committed_readme_headline_equals_bench_tables():
     """README.md's headline block is what bench tables makes of leaderboard/runs."""
     from window_bench.harness.tables import HEADLINE_END, HEADLINE_START, headline, \

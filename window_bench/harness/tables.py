@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from window_bench.harness.evaluation import atomic_write, atomic_write_text
-from window_bench.harness.methods import METHODS, get_preset
+from window_bench.harness.methods import METHODS, agent_class, get_preset
 from window_bench.harness.results import DEFAULTS_REVISION, departures, revision_of
 from window_bench.harness.seeds import seed_set_of
 from window_bench.harness.tracks import get_track
@@ -631,18 +631,15 @@ def plot_budget(rows, path_png: Path, path_svg: Path, paper: dict | None = None
     fig, axes = plt.subplots(1, 2, figsize=(9.6, 4.2), layout="constrained", sharey=True)
     drawn = []
     for ax, setting in zip(axes, ("A", "B")):
-        for i, (label, method, overrides) in enumerate(_headline_rows()):
+        for i, (label, method, ours_row) in enumerate(_headline_rows()):
             p = (paper or {}).get((2 if setting == "A" else 3, setting, method,
                                    METHODS[method].h, "0.5x0.5"))
-            if p and not overrides and p.get("final_success_pct") is not None:
+            if p and ours_row(()) and p.get("final_success_pct") is not None:
                 at = PAPER_HOURS if METHODS[method].online_updates else 0.0   # offline: 0 h
                 ax.plot([at], [float(p["final_success_pct"])], color=f"C{i}",
                         marker="*", ms=10, mfc="none", ls="none")
             for j, profile in enumerate(profiles):
-                keys = [k for k in rows if (k.setting, k.method, k.overrides, k.track, k.profile,
-                                            k.seed_set, k.panel) ==
-                        (setting, method, overrides, "state", profile, "test", "0.5x0.5")
-                        and k.h == METHODS[method].h]
+                keys = _headline_keys(rows, setting, method, ours_row, profile)
                 if not keys:
                     continue
                 ss = [s for s in rows[keys[0]] if s.checkpoints]
@@ -813,12 +810,28 @@ HEADLINE_START, HEADLINE_END = "<!-- bench tables: headline -->", "<!-- /bench t
 
 
 def _headline_rows():
-    paper = get_preset("qcfql-as-published")
-    paper_agent = tuple(sorted((k, json.dumps(v)) for k, v in paper.items()))
-    return (("Ours (complete pipeline)", "qcfql", ()),
-            ("QC-FQL as published (`PAPER_AGENT`)", "qcfql", paper_agent),
-            ("Ours (offline-only)", "qcfql-offline", ()),
-            ("HIL-SERL", "hil-serl", ()), ("ACT", "act", ()), ("SAC", "sac", ()))
+    """(label, method, a test of a row's overrides). The paper's QC-FQL is the preset
+    ``qcfql-as-published``: its entries outside the agent's ``RUN_DEFAULTS`` make it the
+    paper's agent in every revision; the others turn off run defaults that later revisions
+    added, so an earlier revision's row of it carries only some of those."""
+    run_defaults = getattr(agent_class(METHODS["qcfql"].agent), "RUN_DEFAULTS", {})
+    paper = {(k, json.dumps(v)) for k, v in get_preset("qcfql-as-published").items()}
+    core = {(k, v) for k, v in paper if k not in run_defaults}
+    return (("Ours (complete pipeline)", "qcfql", lambda o: o == ()),
+            ("QC-FQL as published (`PAPER_AGENT`)", "qcfql", lambda o: core <= set(o) <= paper),
+            ("Ours (offline-only)", "qcfql-offline", lambda o: o == ()),
+            ("HIL-SERL", "hil-serl", lambda o: o == ()), ("ACT", "act", lambda o: o == ()),
+            ("SAC", "sac", lambda o: o == ()))
+
+
+def _headline_keys(rows, setting: str, method: str, ours_row, profile: str) -> list:
+    """The rows of a headline method on ``setting`` (state track, test seeds, the standard
+    panel, the method's own h, ``ours_row`` of their overrides), newest revision first."""
+    return sorted((k for k in rows if (k.setting, k.method, k.track, k.profile, k.seed_set,
+                                       k.panel) ==
+                   (setting, method, "state", profile, "test", "0.5x0.5")
+                   and k.h == METHODS[method].h and ours_row(k.overrides)),
+                  key=lambda k: -k.defaults)
 
 
 def headline(rows, paper, profile: str = "cpu") -> str:
@@ -827,13 +840,10 @@ def headline(rows, paper, profile: str = "cpu") -> str:
     lines = [f"| method | A: ours (state, {profile}) | A: paper | B: ours (state, {profile}) "
              "| B: paper |",
              "|---|---|---|---|---|"]
-    for label, method, overrides in _headline_rows():
+    for label, method, ours_row in _headline_rows():
         cols = []
         for table, setting in ((2, "A"), (3, "B")):
-            keys = [k for k in rows if (k.setting, k.method, k.overrides, k.track, k.profile,
-                                        k.seed_set, k.panel) ==
-                    (setting, method, overrides, "state", profile, "test", "0.5x0.5")
-                    and k.h == METHODS[method].h]
+            keys = _headline_keys(rows, setting, method, ours_row, profile)
             ss = rows[keys[0]] if keys else []
             old = f", defaults {keys[0].defaults}" if keys and keys[0].defaults < \
                 DEFAULTS_REVISION else ""
