@@ -349,8 +349,8 @@ class Run:
             return self._stage_i_offline_pretraining()
         from window_bench.harness.stage1 import Stage1Cache, demos_sha256, key_material
 
-        material = key_material(self.method.agent, self.track,
-                                self.agent.stage1_hyperparameters(), self._offline_steps(), self.profile.batch_size,
+        material = key_material(self.method.agent, self.track, self.agent.stage1_hyperparameters(),
+                                self._offline_steps(), self.profile.batch_size,
                                 demos_sha256(self._demos()), self.seed)
         self.c["stage1"] = Stage1Cache(self.stage1_cache).compute_or_load(
             material, self._stage_i_entry, self._restore_stage_i)
