@@ -123,6 +123,16 @@ def test_budget_runs_splits_stage_iii_into_thirds_without_the_warm_start():
     assert br.stage_iii_thirds(eps, warm_steps=0)[0] == 0.25   # warm episodes dilute it
 
 
+def test_budget_runs_counts_each_thirds_takeovers_by_cue():
+    br = _script("budget_runs")
+    eps = ([{"steps": 100, "takeover_steps": 9, "takeover_cues": ["wedging"]}]   # warm start
+           + [{"steps": 100, "takeover_steps": 30, "takeover_cues": ["coverage", "stall"]},
+              {"steps": 100, "takeover_steps": 0, "takeover_cues": []},
+              {"steps": 100, "takeover_steps": 10, "takeover_cues": ["stall"]}])
+    assert br.stage_iii_cues(eps, warm_steps=100) == [{"coverage": 1, "stall": 1}, {},
+                                                      {"stall": 1}]
+
+
 def test_budget_runs_refuses_a_missing_run_in_one_line_before_writing(tmp_path, capsys):
     br = _script("budget_runs")
     out = tmp_path / "o.json"

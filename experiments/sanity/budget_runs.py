@@ -1,7 +1,8 @@
 """What a longer budget changed in a set of runs: per run, the final success, how many
 development-seed checkpoints were at >= 95 %, time-to-95, takeover minutes, and the training
-intervention rate (takeover steps / env steps) over each third of Stage III, the warm start
-left out ([the paper's 3.0 h on A](../../docs/results/diagnoses/budget-a.md)).
+intervention rate (takeover steps / env steps) and the takeovers by cue over each third of
+Stage III, the warm start left out
+([the paper's 3.0 h on A](../../docs/results/diagnoses/budget-a.md)).
 
     python experiments/sanity/budget_runs.py leaderboard/runs/WindowInstall-A-v0/qcfql-cpu-s0 \\
         leaderboard/runs/WindowInstall-A-v0/qcfql-long-s0 --out OUT.json
@@ -16,13 +17,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections import Counter
 from pathlib import Path
 
 
-def stage_iii_thirds(train_episodes: list[dict], warm_steps: int) -> list[float | None]:
-    """The intervention rate over each third of Stage III's env steps: episodes that start
-    at or after ``warm_steps`` env steps (the warm start has no takeovers), split where their
-    cumulative steps cross a third of the total. ``None`` for a third without episodes."""
+def _thirds(train_episodes: list[dict], warm_steps: int) -> list[list[dict]]:
+    """Stage III's episodes in three parts: those that start at or after ``warm_steps`` env
+    steps (the warm start has no takeovers), split where their cumulative steps cross a
+    third of the total."""
     start, online = 0, []
     for e in train_episodes:
         if start >= warm_steps:
@@ -34,8 +36,21 @@ def stage_iii_thirds(train_episodes: list[dict], warm_steps: int) -> list[float 
     for e in online:
         thirds[min(2, int(3 * done / total))].append(e)
         done += e["steps"]
-    return [round(sum(e["takeover_steps"] for e in t) / sum(e["steps"] for e in t), 2)
-            if t else None for t in thirds]
+    return thirds
+
+
+def stage_iii_thirds(train_episodes: list[dict], warm_steps: int) -> list[float | None]:
+    """The intervention rate (takeover steps / env steps) over each third of Stage III's env
+    steps (:func:`_thirds`). ``None`` for a third without episodes."""
+    return [round(sum(e["takeover_steps"] for e in t) / sum(e["steps"] for e in t), 3)
+            if t else None for t in _thirds(train_episodes, warm_steps)]
+
+
+def stage_iii_cues(train_episodes: list[dict], warm_steps: int) -> list[dict[str, int]]:
+    """The takeovers of each third of Stage III (:func:`_thirds`), counted by cue
+    (``coverage`` for the installer's deliberate ones)."""
+    return [dict(sorted(Counter(c for e in t for c in e.get("takeover_cues", [])).items()))
+            for t in _thirds(train_episodes, warm_steps)]
 
 
 def describe(r: dict) -> dict:
@@ -50,6 +65,8 @@ def describe(r: dict) -> dict:
             "time_to_95_sim_hours": final["time_to_95_sim_hours"],
             "takeover_minutes": round(final["takeover_minutes"], 1),
             "intervention_rate_stage_iii_thirds": stage_iii_thirds(
+                r["train_episodes"], r["profile"]["warm_steps"]),
+            "takeovers_stage_iii_thirds": stage_iii_cues(
                 r["train_episodes"], r["profile"]["warm_steps"])}
 
 
