@@ -579,7 +579,11 @@ class QCFQLAgent(Agent):
     RUN_DEFAULTS = {"fine_pose_mm": 10.0, "fine_pose_deg": 2.0, "grasp_mm": 10.0,
                     "action_power": 2.0, "online_lr": 3e-5}
 
-    ONLINE_FIELDS = ("online_lr",)
+    #: Settings Stage I never reads: runs that differ only here share a Stage I. On D_demo alone
+    #: every row is accepted and no chunk holds a takeover, so the prior, the distillation and
+    #: the takeover target select every row whatever they are set to
+    #: (``tests/test_qcfql.py::test_online_fields_leave_stage_i_bit_identical``).
+    ONLINE_FIELDS = ("online_lr", "prior_data", "distill_data", "takeover_value")
 
     @classmethod
     def make_config(cls, h: int, profile, overrides: dict) -> QCFQLConfig:

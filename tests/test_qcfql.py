@@ -14,7 +14,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from baselines.qcfql import BATCH_KEYS, OBS_CLIP, QCFQLAgent, QCFQLConfig
+from baselines.qcfql import BATCH_KEYS, OBS_CLIP, PRIOR_DATA, QCFQLAgent, QCFQLConfig
 from window_bench.data.chunks import chunk_transitions
 from window_bench.data.replay import PROVENANCE_CODES
 from window_bench.data.steplog import EpisodeLog
@@ -851,3 +851,35 @@ def test_action_power_learns_and_acts_in_companded_units():
     for bad in (0.5, 5.0, True, "2"):
         with pytest.raises(ValueError, match=r"action_power = .*\[1.0, 4.0\]"):
             QCFQLConfig(action_power=bad)
+
+
+def test_online_fields_leave_stage_i_bit_identical():
+    """Stage I learns from D_demo alone: every row accepted, demonstrated, no takeover. The
+    settings in ``ONLINE_FIELDS`` select rows only by those marks, so on such batches any of
+    their values trains the same weights, bit for bit, and runs differing there may share one
+    Stage I. A field that did change Stage I would fail here."""
+    def demo_batch(i):
+        b = make_batch(16, 2, seed=i)
+        b["provenance_code"][:] = PROVENANCE_CODES["demo"]
+        b["takeover_onset"] = torch.zeros(16, dtype=torch.bool)
+        b["episode_supervised"] = torch.zeros(16, dtype=torch.bool)
+        return b
+
+    def weights(**kw):
+        agent = QCFQLAgent(OBS, A, tiny(h=2, hidden=(16,), **kw), seed=3)
+        for i in range(5):
+            agent.update(demo_batch(i))
+        nets = (agent.critic, agent.target_critic, agent.teacher, agent.student,
+                agent.ema_teacher, agent.ema_student)
+        return [p.detach().clone() for net in nets for p in net.parameters()]
+
+    base = weights()
+    variants = {"prior_data": [p for p in PRIOR_DATA if p != "accepted_no_takeover"],
+                "distill_data": ["prior", "prior_else_self"], "takeover_value": [0.0, -1.0]}
+    assert set(variants) | {"online_lr"} == set(QCFQLAgent.ONLINE_FIELDS)
+    for field, values in variants.items():
+        for value in values:
+            assert all(torch.equal(p, q) for p, q in zip(base, weights(**{field: value}),
+                                                         strict=True)), (field, value)
+    # and the check can fail: a setting Stage I does read changes the weights
+    assert not all(torch.equal(p, q) for p, q in zip(base, weights(alpha=1.0), strict=True))
