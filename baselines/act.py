@@ -55,10 +55,11 @@ from torch import nn
 
 from window_bench.data.steplog import ACTION_DIM, EpisodeLog, without_noops
 from window_bench.envs.task import FAILURE_MODE_NAMES, STAGES
-from window_bench.harness.agent import (Agent, AgentSpec, generator_state, load_optimizer_state,
-                                        module_state, optimizer_state, with_overrides)
-from window_bench.installer.supervisor import (check_fine_pose, fine_pose_features,
-                                              fine_pose_inputs)
+from window_bench.harness.agent import (Agent, AgentSpec, arm_power, generator_state,
+                                        load_optimizer_state, module_state, optimizer_state,
+                                        with_overrides)
+from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, fine_pose_features,
+                                              fine_pose_inputs, grasp_features)
 
 #: Number of leading floats of the ``flat`` observation that belong to the robot: the
 #: ``robot0_*`` entries of ``window_bench.envs.env.STATE_KEYS`` (7 + 7 + 3 + 4 + 1 + 18).
@@ -129,6 +130,17 @@ class ACTConfig:
     panel's millimetres around the seat where the z-score of whole episodes does not."""
     fine_pose_deg: float = 1.0
     """Angle scale of the fine rotation features (used when ``fine_pose_mm > 0``)."""
+    grasp_mm: float = 0.0
+    """Grasp features (not in ACT; state track, as QC-FQL's option of the same name): ``0``
+    off; else the object-state token also reads ``tanh`` of the cup's offset from the
+    panel's centre in the panel's face plane at this scale
+    (:func:`window_bench.installer.supervisor.grasp_features`): where the cup holds the
+    panel, which on B changes from one pick to the next."""
+    action_power: float = 1.0
+    """Action companding (not in ACT; as QC-FQL's option of the same name): ``1``, the model
+    learns the env's actions; ``p > 1``, it learns ``sign(a) |a|^(1/p)`` on the arm's entries
+    (z-scored like any target) and the env receives ``sign(c) |c|^p``, so the millimetre
+    corrections near contact take more of the regression's range."""
     loss: str = "l1"
     """Reconstruction term: ``"l1"`` (ACT) or ``"l2"`` (squared error, a departure measured in
     docs/act.md "Why ACT fails where flow BC succeeds")."""
@@ -167,6 +179,11 @@ class ACTConfig:
             raise ValueError(f"ACTConfig.obs_clip = {self.obs_clip!r} is not allowed: must be "
                              f"0 (no clipping) or a finite number > 0")
         check_fine_pose("ACTConfig", self.fine_pose_mm, self.fine_pose_deg)
+        for name, lo, hi in (("grasp_mm", 0.0, 1000.0), ("action_power", 1.0, 4.0)):
+            v = getattr(self, name)
+            if not (_is_real(v) and lo <= v <= hi):
+                raise ValueError(f"ACTConfig.{name} = {v!r} is not allowed: must lie in "
+                                 f"[{lo}, {hi}]")
         for name, hi in (("lr", 1.0), ("std_floor", math.inf)):
             v = getattr(self, name)
             if not (_is_real(v) and 0.0 < v <= hi):
@@ -479,6 +496,11 @@ class ACTAgent(Agent):
         _check_int("action_dim", action_dim, 1)
         _check_int("seed", seed, 0)
         fine = fine_pose_inputs("ACTConfig", config.fine_pose_mm, obs_dim)
+        if config.grasp_mm:
+            if obs_dim != FLAT_DIM:
+                raise ValueError(f"ACTConfig.grasp_mm = {config.grasp_mm} needs the flat "
+                                 f"state observation ({FLAT_DIM} values); obs_dim = {obs_dim}")
+            fine += 2
         if config.robot_dim > obs_dim:
             raise ValueError(f"ACTConfig.robot_dim = {config.robot_dim} is not allowed for "
                              f"obs_dim = {obs_dim}: must lie in [0, {obs_dim}]")
@@ -487,7 +509,8 @@ class ACTAgent(Agent):
         torch_gen = torch.Generator().manual_seed(self.seed)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(int(torch.randint(2**62, (1,), generator=torch_gen)))
-            # the fine pose features join the end of the observation: the object-state token
+            # the fine pose and grasp features join the end of the observation: the
+            # object-state token
             self.model = ACTModel(self.obs_dim + fine,
                                   self.action_dim, config)
             self._torch_rng = torch.get_rng_state()
@@ -547,7 +570,8 @@ class ACTAgent(Agent):
         stack = self._training_stack(episodes, 1)
         real = np.concatenate([np.arange(n) + o for n, o in zip(stack["lengths"],
                                                                   stack["act_offset"])])
-        obs, act = stack["obs"].astype(np.float64), stack["actions"][real].astype(np.float64)
+        obs = stack["obs"].astype(np.float64)
+        act = self._compand(torch.as_tensor(stack["actions"][real])).numpy().astype(np.float64)
         floor = self.config.std_floor
         self.norm = {
             "obs_mean": torch.tensor(obs.mean(0), dtype=torch.float32),
@@ -558,15 +582,25 @@ class ACTAgent(Agent):
 
     def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
         """Z-scored observations, clipped to ``+-config.obs_clip`` when it is set; with
-        ``config.fine_pose_mm`` the 6 fine pose features follow."""
+        ``config.fine_pose_mm`` the 6 fine pose features follow, then with ``config.grasp_mm``
+        the 2 grasp features."""
         norm = self._need_norm()
         obs_n = (obs - norm["obs_mean"]) / norm["obs_std"]
         clip = self.config.obs_clip
         obs_n = obs_n.clamp(-clip, clip) if clip else obs_n
-        if not self.config.fine_pose_mm:
-            return obs_n
-        fine = fine_pose_features(obs, self.config.fine_pose_mm, self.config.fine_pose_deg)
-        return torch.cat([obs_n, fine.to(obs_n.dtype)], dim=-1)
+        extra = []
+        if self.config.fine_pose_mm:
+            extra.append(fine_pose_features(obs, self.config.fine_pose_mm,
+                                            self.config.fine_pose_deg))
+        if self.config.grasp_mm:
+            extra.append(grasp_features(obs, self.config.grasp_mm))
+        return torch.cat([obs_n, *(e.to(obs_n.dtype) for e in extra)], dim=-1)
+
+    def _compand(self, actions: torch.Tensor, inverse: bool = False) -> torch.Tensor:
+        """The env's actions as the model learns them (``config.action_power``), or with
+        ``inverse`` the model's back to the env's."""
+        p = self.config.action_power
+        return arm_power(actions, p if inverse else 1.0 / p)
 
     def _need_norm(self) -> dict:
         if self.norm is None:
@@ -592,7 +626,8 @@ class ACTAgent(Agent):
         obs = batch["obs"]   # a tensor with a graph on the pixel track: its front end trains too
         obs = (obs.float() if isinstance(obs, torch.Tensor)
                else torch.as_tensor(np.asarray(obs), dtype=torch.float32))
-        actions = torch.as_tensor(np.asarray(batch["actions"]), dtype=torch.float32)
+        actions = self._compand(torch.as_tensor(np.asarray(batch["actions"]),
+                                                dtype=torch.float32))
         is_pad = torch.as_tensor(np.asarray(batch["is_pad"]), dtype=torch.bool)
         B, k = is_pad.shape[0], self.config.chunk
         if (obs.shape != (B, self.obs_dim) or actions.shape != (B, k, self.action_dim)
@@ -655,7 +690,7 @@ class ACTAgent(Agent):
         for n, o_off, a_off in zip(stack["lengths"], stack["obs_offset"], stack["act_offset"]):
             steps = np.arange(n)[:, None] + np.arange(k)[None, :]
             obs = torch.from_numpy(stack["obs"][o_off:o_off + n])
-            target = torch.from_numpy(stack["actions"][a_off + steps])
+            target = self._compand(torch.from_numpy(stack["actions"][a_off + steps]))
             is_pad = torch.from_numpy(steps >= n)
             pred = self.model(self.normalize_obs(obs))[0]
             err = ((pred - (target - norm["act_mean"]) / norm["act_std"]).abs()
@@ -687,8 +722,8 @@ class ACTAgent(Agent):
         norm = self._need_norm()
         self.model.eval()
         pred = self.model(self.normalize_obs(torch.as_tensor(np.asarray(obs, np.float32))))[0]
-        actions = pred * norm["act_std"] + norm["act_mean"]
-        return actions.clamp(-1.0, 1.0).numpy().astype(np.float32)
+        actions = (pred * norm["act_std"] + norm["act_mean"]).clamp(-1.0, 1.0)
+        return self._compand(actions, inverse=True).numpy().astype(np.float32)
 
     def act(self, obs: np.ndarray, deterministic: bool = True) -> np.ndarray:
         """Actions to execute next: the whole chunk (k, A), or (1, A) with temporal

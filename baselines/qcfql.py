@@ -50,8 +50,9 @@ from window_bench.data.replay import PROVENANCE_CODES
 from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, fine_pose_features,
                                               fine_pose_inputs, grasp_features,
                                               tool_features)
-from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer_state,
-                                        module_state, optimizer_state, plain, with_overrides)
+from window_bench.harness.agent import (Agent, arm_power, config_from_plain,
+                                        load_optimizer_state, module_state, optimizer_state,
+                                        plain, with_overrides)
 
 #: Bound on normalised observations (in demo standard deviations).
 OBS_CLIP = 10.0
@@ -644,10 +645,7 @@ class QCFQLAgent(Agent):
 
     def _power(self, chunks: torch.Tensor, exponent: float) -> torch.Tensor:
         """``sign(x) |x|^exponent`` on the arm's entries of (..., h, A) chunks."""
-        if self.config.action_power == 1.0:
-            return chunks
-        arm, vac = chunks[..., :-1], chunks[..., -1:]
-        return torch.cat([arm.sign() * arm.abs().pow(exponent), vac], dim=-1)
+        return chunks if self.config.action_power == 1.0 else arm_power(chunks, exponent)
 
     def _noise(self, batch: int) -> torch.Tensor:
         return torch.randn(batch, self.chunk_dim, generator=self.update_generator)

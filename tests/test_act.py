@@ -380,6 +380,49 @@ def test_drop_noops_trains_and_normalises_on_the_moving_steps_only():
         ACTConfig(drop_noops="yes")
 
 
+def test_grasp_features_follow_the_fine_pose_and_read_the_cups_offset():
+    from window_bench.installer.supervisor import grasp_features
+    eps = [synthetic_episode(23, 0)]
+    agent = ACTAgent(OBS_DIM, config=replace(SMOKE, fine_pose_mm=10.0, grasp_mm=10.0), seed=0)
+    agent.fit_normalizer(eps)
+    assert agent.model.env_dim == OBS_DIM - 40 + 6 + 2
+    obs = torch.from_numpy(eps[0].observations[:3].astype(np.float32))
+    x = agent.normalize_obs(obs)
+    assert x.shape == (3, OBS_DIM + 8)
+    assert torch.equal(x[:, -2:], grasp_features(obs, 10.0))
+    rebuilt = ACTAgent.from_policy_state_dict(agent.policy_state_dict())
+    assert np.array_equal(rebuilt.predict_chunk(obs[1].numpy()),
+                          agent.predict_chunk(obs[1].numpy()))
+    agent.train_offline(eps, 2)
+    with pytest.raises(ValueError, match=r"grasp_mm = 10.0 needs the flat state"):
+        ACTAgent(20, config=replace(SMOKE, robot_dim=0, grasp_mm=10.0))
+    with pytest.raises(ValueError, match=r"grasp_mm = -1 .* \[0.0, 1000.0\]"):
+        ACTConfig(grasp_mm=-1)
+
+
+def test_action_power_learns_and_acts_in_companded_units():
+    """With ``action_power = 2`` the normaliser and the targets are ``sign(a) |a|^(1/2)`` on
+    the arm's entries (the vacuum as is), and acting maps the model's output back."""
+    ep = synthetic_episode(40, 0)
+    ep.actions[:, :6] = 0.04                      # a 1 mm step: 0.2 companded units
+    plain = ACTAgent(OBS_DIM, config=SMOKE, seed=0)
+    comp = ACTAgent(OBS_DIM, config=replace(SMOKE, action_power=2.0), seed=0)
+    for agent in (plain, comp):
+        agent.fit_normalizer([ep])
+    assert plain.norm["act_mean"][:6].numpy() == pytest.approx(0.04, abs=1e-6)
+    assert comp.norm["act_mean"][:6].numpy() == pytest.approx(0.2, abs=1e-6)
+    assert comp.norm["act_mean"][6].item() == pytest.approx(ep.actions[:, 6].mean(), abs=1e-6)
+    # an untrained model predicts ~0 normalised units -> the mean -> 0.2 ** 2 = 0.04 in the env
+    with torch.no_grad():
+        for p in comp.model.parameters():
+            p.zero_()
+    chunk = comp.predict_chunk(ep.observations[0].astype(np.float32))
+    assert chunk[:, :6] == pytest.approx(0.04, abs=1e-6)
+    comp.train_offline([ep], 2)
+    with pytest.raises(ValueError, match=r"action_power = 0.5 .* \[1.0, 4.0\]"):
+        ACTConfig(action_power=0.5)
+
+
 def test_normalizer_floors_constant_dims():
     ep = synthetic_episode(40, 0)
     ep.actions[:, 6] = 1.0  # setting A: the vacuum is always on

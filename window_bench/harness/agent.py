@@ -210,6 +210,15 @@ def make_agent(method, profile, demos: list, seed: int, overrides: dict | None =
                                 front_end=front_end))
 
 
+def arm_power(actions: torch.Tensor, exponent: float) -> torch.Tensor:
+    """``sign(x) |x|^exponent`` on the arm's entries of (..., A) actions, the vacuum (last
+    entry) unchanged: the action companding of QC-FQL's and ACT's ``action_power``."""
+    if exponent == 1.0:
+        return actions
+    arm, vac = actions[..., :-1], actions[..., -1:]
+    return torch.cat([arm.sign() * arm.abs().pow(exponent), vac], dim=-1)
+
+
 def obs_normalizer(obs: np.ndarray, floor: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
     """Mean and std of the demonstrations' observations, for the agents' fixed z-scoring.
 
