@@ -58,8 +58,8 @@ from window_bench.envs.task import FAILURE_MODE_NAMES, STAGES
 from window_bench.harness.agent import (Agent, AgentSpec, arm_power, generator_state,
                                         load_optimizer_state, module_state, optimizer_state,
                                         with_overrides)
-from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, fine_pose_features,
-                                              fine_pose_inputs, grasp_features)
+from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, extra_features,
+                                              fine_pose_inputs)
 
 #: Number of leading floats of the ``flat`` observation that belong to the robot: the
 #: ``robot0_*`` entries of ``window_bench.envs.env.STATE_KEYS`` (7 + 7 + 3 + 4 + 1 + 18).
@@ -588,12 +588,8 @@ class ACTAgent(Agent):
         obs_n = (obs - norm["obs_mean"]) / norm["obs_std"]
         clip = self.config.obs_clip
         obs_n = obs_n.clamp(-clip, clip) if clip else obs_n
-        extra = []
-        if self.config.fine_pose_mm:
-            extra.append(fine_pose_features(obs, self.config.fine_pose_mm,
-                                            self.config.fine_pose_deg))
-        if self.config.grasp_mm:
-            extra.append(grasp_features(obs, self.config.grasp_mm))
+        c = self.config
+        extra = extra_features(obs, c.fine_pose_mm, c.fine_pose_deg, c.grasp_mm)
         return torch.cat([obs_n, *(e.to(obs_n.dtype) for e in extra)], dim=-1)
 
     def _compand(self, actions: torch.Tensor, inverse: bool = False) -> torch.Tensor:

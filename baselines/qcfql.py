@@ -47,9 +47,8 @@ from torchrl.modules import MLP
 
 from window_bench.envs.env import VACUUM_THRESHOLD
 from window_bench.data.replay import PROVENANCE_CODES
-from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, fine_pose_features,
-                                              fine_pose_inputs, grasp_features,
-                                              tool_features)
+from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, extra_features,
+                                              fine_pose_inputs)
 from window_bench.harness.agent import (Agent, arm_power, config_from_plain,
                                         load_optimizer_state, module_state, optimizer_state,
                                         plain, with_overrides)
@@ -621,14 +620,9 @@ class QCFQLAgent(Agent):
         z = ((obs - self.obs_mean) / self.obs_std).clamp(-OBS_CLIP, OBS_CLIP)
         if self.config.observed_keys is not None:
             z = z * self._observed_mask(z.shape[-1])
-        extra = []
-        if self.config.fine_pose_mm:
-            extra.append(fine_pose_features(obs, self.config.fine_pose_mm,
-                                            self.config.fine_pose_deg))
-        if self.config.grasp_mm:
-            extra.append(grasp_features(obs, self.config.grasp_mm))
-        if self.config.tool_in_panel_m:
-            extra.append(tool_features(obs, self.config.tool_in_panel_m))
+        c = self.config
+        extra = extra_features(obs, c.fine_pose_mm, c.fine_pose_deg, c.grasp_mm,
+                               c.tool_in_panel_m)
         return torch.cat([z, *[e.to(z.dtype) for e in extra]], dim=-1) if extra else z
 
     def _observed_mask(self, dim: int) -> torch.Tensor:

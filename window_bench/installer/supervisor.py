@@ -145,6 +145,22 @@ def tool_features(obs, m: float):
     return torch.tanh(tool_in_panel(obs) / m)
 
 
+def extra_features(obs, fine_pose_mm: float = 0.0, fine_pose_deg: float = 1.0,
+                   grasp_mm: float = 0.0, tool_in_panel_m: float = 0.0) -> list:
+    """The features a state-track learner reads beside its z-scored observation, in this
+    order, each only when its scale is set (not 0): :func:`fine_pose_features`,
+    :func:`grasp_features`, :func:`tool_features` (QC-FQL's and ACT's options of the same
+    names)."""
+    extra = []
+    if fine_pose_mm:
+        extra.append(fine_pose_features(obs, fine_pose_mm, fine_pose_deg))
+    if grasp_mm:
+        extra.append(grasp_features(obs, grasp_mm))
+    if tool_in_panel_m:
+        extra.append(tool_features(obs, tool_in_panel_m))
+    return extra
+
+
 def check_fine_pose(owner: str, mm, deg) -> None:
     """The fine pose scales a learner's config may hold: ``mm`` in [0, 1000] (0: off),
     ``deg`` in (0, 90]; ``ValueError`` naming ``owner`` (e.g. ``"ACTConfig"``) otherwise."""
