@@ -131,6 +131,10 @@ def test_budget_runs_counts_each_thirds_takeovers_by_cue():
               {"steps": 100, "takeover_steps": 10, "takeover_cues": ["stall"]}])
     assert br.stage_iii_cues(eps, warm_steps=100) == [{"coverage": 1, "stall": 1}, {},
                                                       {"stall": 1}]
+    # the episodes themselves, indexed among all training episodes (warm start included)
+    assert br.takeover_episodes(eps, warm_steps=100) == [
+        {"episode": 1, "third": 1, "takeover_steps": 30, "cues": ["coverage", "stall"]},
+        {"episode": 3, "third": 3, "takeover_steps": 10, "cues": ["stall"]}]
 
 
 def test_budget_runs_refuses_a_missing_run_in_one_line_before_writing(tmp_path, capsys):

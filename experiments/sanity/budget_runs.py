@@ -1,7 +1,7 @@
 """What a longer budget changed in a set of runs: per run, the final success, how many
 development-seed checkpoints were at >= 95 %, time-to-95, takeover minutes, and the training
 intervention rate (takeover steps / env steps) and the takeovers by cue over each third of
-Stage III, the warm start left out
+Stage III, the warm start left out, and which training episodes had a takeover
 ([the paper's 3.0 h on A](../../docs/results/diagnoses/budget-a.md)).
 
     python experiments/sanity/budget_runs.py leaderboard/runs/WindowInstall-A-v0/qcfql-cpu-s0 \\
@@ -53,6 +53,17 @@ def stage_iii_cues(train_episodes: list[dict], warm_steps: int) -> list[dict[str
             for t in _thirds(train_episodes, warm_steps)]
 
 
+def takeover_episodes(train_episodes: list[dict], warm_steps: int) -> list[dict]:
+    """Stage III's episodes with a takeover: their index among all training episodes (so
+    runs with the same seed and env can be compared episode by episode: the same index is
+    the same start state), third, takeover steps and cues."""
+    thirds = _thirds(train_episodes, warm_steps)
+    where = {id(e): k for k, t in enumerate(thirds) for e in t}
+    return [{"episode": i, "third": where[id(e)] + 1, "takeover_steps": e["takeover_steps"],
+             "cues": e.get("takeover_cues", [])}
+            for i, e in enumerate(train_episodes) if id(e) in where and e["takeover_steps"]]
+
+
 def describe(r: dict) -> dict:
     cps, final = r["checkpoints"], r["final"]
     return {"env_id": r["env_id"], "method": r["method"]["name"], "profile": r["profile"]["name"],
@@ -67,6 +78,8 @@ def describe(r: dict) -> dict:
             "intervention_rate_stage_iii_thirds": stage_iii_thirds(
                 r["train_episodes"], r["profile"]["warm_steps"]),
             "takeovers_stage_iii_thirds": stage_iii_cues(
+                r["train_episodes"], r["profile"]["warm_steps"]),
+            "takeover_episodes_stage_iii": takeover_episodes(
                 r["train_episodes"], r["profile"]["warm_steps"])}
 
 
