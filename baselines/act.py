@@ -59,7 +59,7 @@ from window_bench.harness.agent import (Agent, AgentSpec, arm_power, generator_s
                                         load_optimizer_state, module_state, optimizer_state,
                                         with_overrides)
 from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, extra_features,
-                                              fine_pose_inputs)
+                                              extra_inputs)
 
 #: Number of leading floats of the ``flat`` observation that belong to the robot: the
 #: ``robot0_*`` entries of ``window_bench.envs.env.STATE_KEYS`` (7 + 7 + 3 + 4 + 1 + 18).
@@ -495,12 +495,7 @@ class ACTAgent(Agent):
         _check_int("obs_dim", obs_dim, 1)
         _check_int("action_dim", action_dim, 1)
         _check_int("seed", seed, 0)
-        fine = fine_pose_inputs("ACTConfig", config.fine_pose_mm, obs_dim)
-        if config.grasp_mm:
-            if obs_dim != FLAT_DIM:
-                raise ValueError(f"ACTConfig.grasp_mm = {config.grasp_mm} needs the flat "
-                                 f"state observation ({FLAT_DIM} values); obs_dim = {obs_dim}")
-            fine += 2
+        fine = extra_inputs(config, obs_dim)
         if config.robot_dim > obs_dim:
             raise ValueError(f"ACTConfig.robot_dim = {config.robot_dim} is not allowed for "
                              f"obs_dim = {obs_dim}: must lie in [0, {obs_dim}]")

@@ -71,7 +71,7 @@ from window_bench.harness.agent import (Agent, config_from_plain, load_optimizer
 from window_bench.envs.env import (POS_SCALE, ROT_SCALE, VACUUM_THRESHOLD, mat_to_rotvec,
                                    rotvec_to_mat)
 from window_bench.installer.supervisor import (FLAT_DIM, FLAT_SLICES, check_fine_pose,
-                                              fine_pose_features, fine_pose_inputs)
+                                              fine_pose_features, extra_inputs)
 
 _ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU}
 #: Batch keys the learner reads (``valid`` is optional and defaults to all True; the
@@ -682,7 +682,7 @@ class HILSERLAgent(Agent):
             raise ValueError(f"action_dim = {action_dim} is not allowed with vacuum_head = "
                              f"{config.vacuum_head!r}: it needs at least one pose dimension "
                              f"and the vacuum")
-        in_dim = obs_dim + fine_pose_inputs("HILSERLConfig", config.fine_pose_mm, obs_dim)
+        in_dim = obs_dim + extra_inputs(config, obs_dim)
         # With the grasp critic or a held vacuum, the actor and the critic ensemble see the
         # pose dimensions only (HIL-SERL's critic takes actions[..., :-1]).
         self.pose_dim = (action_dim - 1 if self.discrete_vacuum or self.held_vacuum

@@ -48,7 +48,7 @@ from torchrl.modules import MLP
 from window_bench.envs.env import VACUUM_THRESHOLD
 from window_bench.data.replay import PROVENANCE_CODES
 from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, extra_features,
-                                              fine_pose_inputs)
+                                              extra_inputs)
 from window_bench.harness.agent import (Agent, arm_power, config_from_plain,
                                         load_optimizer_state, module_state, optimizer_state,
                                         plain, with_overrides)
@@ -525,15 +525,7 @@ class QCFQLAgent(Agent):
         self.config = copy.deepcopy(config)
         self.obs_dim, self.action_dim, self.seed = int(obs_dim), int(action_dim), int(seed)
         self.chunk_dim = self.config.h * self.action_dim
-        in_dim = obs_dim + fine_pose_inputs("QCFQLConfig", self.config.fine_pose_mm,
-                                            self.obs_dim)   # what the networks see
-        for name, n in (("grasp_mm", 2), ("tool_in_panel_m", 3)):
-            if getattr(self.config, name):
-                if obs_dim != FLAT_DIM:
-                    raise ValueError(f"QCFQLConfig.{name} = {getattr(self.config, name)} needs "
-                                     f"the flat state observation ({FLAT_DIM} values); "
-                                     f"obs_dim = {obs_dim}")
-                in_dim += n
+        in_dim = obs_dim + extra_inputs(self.config, self.obs_dim)   # what the networks see
         self.num_updates = 0
 
         mean = np.zeros(obs_dim) if obs_mean is None else np.asarray(obs_mean, np.float64)

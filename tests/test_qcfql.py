@@ -617,6 +617,30 @@ def _features_extend_the_input_and_survive_a_restore(obs, n_extra, field, value,
         QCFQLAgent(OBS, A, tiny(**{field: value}))
 
 
+def test_extra_inputs_count_every_feature_kind_for_every_learner():
+    """One count of the extra inputs serves QC-FQL, ACT and HIL-SERL: 6 + 2 + 3 for the three
+    feature kinds, only those switched on, a config without a field counts it off, and each
+    kind is refused by name off the flat state."""
+    from types import SimpleNamespace
+
+    from baselines.act import ACTConfig
+    from baselines.hilserl import HILSERLConfig
+    from window_bench.installer.supervisor import FLAT_DIM, extra_features, extra_inputs
+
+    cfg = SimpleNamespace(fine_pose_mm=10.0, fine_pose_deg=2.0, grasp_mm=10.0, tool_in_panel_m=0.5)
+    assert extra_inputs(cfg, FLAT_DIM) == 11
+    obs = torch.zeros(3, FLAT_DIM, dtype=torch.float64)
+    assert sum(f.shape[-1] for f in extra_features(obs, 10.0, 2.0, 10.0, 0.5)) == 11
+    assert extra_inputs(SimpleNamespace(grasp_mm=10.0), FLAT_DIM) == 2
+    assert extra_inputs(ACTConfig(), FLAT_DIM) == 0
+    assert extra_inputs(HILSERLConfig(fine_pose_mm=10.0), FLAT_DIM) == 6   # no grasp field
+    for field in ("fine_pose_mm", "grasp_mm", "tool_in_panel_m"):
+        with pytest.raises(ValueError, match=f"SimpleNamespace.{field} = 1.0 needs the flat "
+                                             f"state observation \\({FLAT_DIM} values\\); "
+                                             f"obs_dim = 20"):
+            extra_inputs(SimpleNamespace(**{field: 1.0}), 20)
+
+
 def test_grasp_features_read_where_the_cup_holds_the_panel():
     """``grasp_mm`` adds tanh of the TCP's offset from the panel's centre in the panel's face
     plane, computed from the flat state alone; on a real A reset (the panel grasped up to

@@ -191,15 +191,25 @@ def check_flat_state_fields(config, observation: str) -> None:
                              f"observation; on {observation} it must be {off} (off)")
 
 
-def fine_pose_inputs(owner: str, mm: float, obs_dim: int) -> int:
-    """How many values the fine pose features add to an ``obs_dim`` observation (6, or 0
-    when off); ``ValueError`` when they are on and the observation is not the flat state."""
-    if not mm:
-        return 0
-    if obs_dim != FLAT_DIM:
-        raise ValueError(f"{owner}.fine_pose_mm = {mm} needs the flat state observation "
-                         f"({FLAT_DIM} values); obs_dim = {obs_dim}")
-    return 6
+#: Values each feature kind of :func:`extra_features` adds, keyed by its config field.
+EXTRA_INPUTS = {"fine_pose_mm": 6, "grasp_mm": 2, "tool_in_panel_m": 3}
+
+
+def extra_inputs(config, obs_dim: int) -> int:
+    """How many values :func:`extra_features` adds for ``config`` (its ``fine_pose_mm``,
+    ``grasp_mm`` and ``tool_in_panel_m``, each 0 when off or absent) to an ``obs_dim``
+    observation; ``ValueError`` naming the field when one is on and the observation is not
+    the flat state."""
+    n = 0
+    for field, k in EXTRA_INPUTS.items():
+        value = getattr(config, field, 0)
+        if not value:
+            continue
+        if obs_dim != FLAT_DIM:
+            raise ValueError(f"{type(config).__name__}.{field} = {value} needs the flat state "
+                             f"observation ({FLAT_DIM} values); obs_dim = {obs_dim}")
+        n += k
+    return n
 
 
 #: Safety cues, in the order they are checked.
