@@ -439,6 +439,9 @@ def test_online_lr_acts_from_stage_ii_and_shares_stage_i(tmp_path, demos_root):
     plain_run, slow = run("plain", online_lr=None), run("slow", online_lr=1e-5)
     a, b = plain_run.train(), slow.train()
     assert a["stage1"]["key"] == b["stage1"]["key"]
+    from window_bench.harness.stage1 import demos_sha256
+    assert a["stage1"]["demos_sha256"] == b["stage1"]["demos_sha256"] == \
+        demos_sha256(plain_run._demos())   # the demos Stage I trained on (as labelled)
     assert (a["stage1"]["cache_hit"], b["stage1"]["cache_hit"]) == (False, True)
     assert [g["lr"] for g in plain_run.agent.optimizer.param_groups] == [3e-4]
     assert [g["lr"] for g in slow.agent.optimizer.param_groups] == [1e-5]

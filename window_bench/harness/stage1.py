@@ -131,8 +131,9 @@ class Stage1Cache:
                         restore: Callable[[dict], None]) -> dict:
         """The entry of ``material``'s key: ``compute()`` makes it (stored) when the cache has
         none, else ``restore(tree)`` loads it, both under the key's lock. Returns the record a
-        run keeps (``stage1`` in ``results.json``): the key, hit or miss, Stage I's wall
-        clock, the lock wait and the load time."""
+        run keeps (``stage1`` in ``results.json``): the key, the demonstrations' and the
+        code's digests it hashes (so a key can be traced to its demos), hit or miss, Stage I's
+        wall clock, the lock wait and the load time."""
         key = stage1_key(material)
         t0 = time.perf_counter()
         with self.lock(key):
@@ -146,7 +147,8 @@ class Stage1Cache:
                 tree, meta = entry
                 restore(tree)
                 wall = meta["stage1_wall_clock_s"]
-        return {"key": key, "cache_hit": entry is not None,
+        return {"key": key, "demos_sha256": material["demos_sha256"],
+                "code_sha256": material["code_sha256"], "cache_hit": entry is not None,
                 "stage1_wall_clock_s": round(wall, 2), "lock_wait_s": round(waited, 2),
                 "load_s": round(time.perf_counter() - t0 - waited, 2)
                 if entry is not None else None}
