@@ -259,6 +259,12 @@ class QCFQLConfig:
     units) becomes 0.2 internal units at ``p = 2``, spreading the small corrections near
     contact over more of the regression's range."""
 
+    offline_steps: int | None = None
+    """Stage I's gradient steps: ``None``, the profile's (``cpu``: 20,000); a number (a
+    diagnostic, not in the paper), this many. A short Stage I starts the online phase from a
+    weak policy, as the paper's does (offline-only 78 / 75 %), to test whether the
+    installer's takeovers fall as the policy improves."""
+
     binary_gripper: bool = False
     """Feed the critic the vacuum command as the env executes it (``+1`` where the last
     action entry of each step is > 0.5, else ``-1``) so that ``Q`` values realized chunks and
@@ -305,6 +311,11 @@ class QCFQLConfig:
                 raise ValueError(f"QCFQLConfig.{name} = {getattr(self, name)!r} is not "
                                  f"allowed: it must be true or false")
         check_fine_pose("QCFQLConfig", self.fine_pose_mm, self.fine_pose_deg)
+        o = self.offline_steps
+        if o is not None and (isinstance(o, bool) or not isinstance(o, numbers.Integral)
+                              or not 0 <= o <= 10_000_000):
+            raise ValueError(f"QCFQLConfig.offline_steps = {o!r} is not allowed: it must be "
+                             f"null (the profile's) or an integer in [0, 10000000]")
         p = self.action_power
         if isinstance(p, bool) or not isinstance(p, numbers.Real) or not 1.0 <= p <= 4.0:
             raise ValueError(f"QCFQLConfig.action_power = {p!r} is not allowed: it must lie "
@@ -590,6 +601,11 @@ class QCFQLAgent(Agent):
     @property
     def demo_chunk_stride(self) -> int | None:
         return self.config.demo_chunk_stride
+
+    @property
+    def offline_steps(self) -> int | None:
+        """Stage I gradient steps for the harness: the config's, None for the profile's."""
+        return self.config.offline_steps
 
     def begin_online(self) -> None:
         """From Stage II on, Adam steps at ``config.online_lr`` (when set)."""

@@ -14,7 +14,7 @@ from window_bench.cli import main
 from window_bench.data.dataset import load_episodes
 from window_bench.harness.evaluation import wilson_interval
 from window_bench.harness.run import Run, summarize_eval, time_to_threshold
-from window_bench.harness.methods import METHODS, PROFILES, get_method, methods_table
+from window_bench.harness.methods import METHODS, PROFILES, get_method, get_profile, methods_table
 from window_bench.installer.operators import DEFAULT_OPERATOR
 from window_bench.harness.results import DEFAULTS_REVISION
 
@@ -425,6 +425,26 @@ def test_demo_chunk_stride_puts_a_window_at_every_demonstrated_step(tmp_path, mo
     with pytest.raises(ValueError, match=r"demo_chunk_stride = 11 is not allowed: .* 1\.\.h = 10"):
         Run("qcfql", "WindowInstall-A-v0", "smoke", 0, tmp_path / "bad", demos=demos_root,
             agent_config={"demo_chunk_stride": 11})
+    assert not (tmp_path / "bad").exists()
+
+
+def test_qcfql_offline_steps_sets_stage_i_and_its_cache_key(tmp_path, demos_root):
+    """``--agent-config offline_steps=N`` runs N Stage I updates instead of the profile's (a
+    weak start), names a Stage I of its own in the cache, and is refused out of range before
+    any file is written."""
+    def run(out, **config):
+        return Run("qcfql", "WindowInstall-A-v0", "smoke", 0, tmp_path / out, demos=demos_root,
+                   progress=False, save_every_s=0.0, stage1_cache=tmp_path / "cache",
+                   agent_config=config or None)
+
+    short, plain_run = run("short", offline_steps=3), run("plain")
+    a, b = short.train(), plain_run.train()
+    assert short.c["offline_done"] == 3
+    assert plain_run.c["offline_done"] == get_profile("smoke").offline_steps != 3
+    assert a["stage1"]["key"] != b["stage1"]["key"] and not b["stage1"]["cache_hit"]
+    assert a["agent_config_overrides"] == {"offline_steps": 3}
+    with pytest.raises(ValueError, match=r"offline_steps = -1 is not allowed: .*\[0, 10000000\]"):
+        run("bad", offline_steps=-1)
     assert not (tmp_path / "bad").exists()
 
 
