@@ -53,7 +53,7 @@ def test_run_preset_gives_its_overrides_and_agent_config_wins(tmp_path, capsys):
     assert main(["run", "--method", "qcfql", "--profile", "smoke", "--preset", "hilserl-own",
                  "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "unknown agent config field 'offline_steps'" in err[0]
+    assert len(err) == 1 and "unknown agent config field 'log_std_min'" in err[0]
     assert not out.exists()
     with pytest.raises(SystemExit):
         main(["run", "--preset", "nobody"])
