@@ -58,8 +58,7 @@ from window_bench.envs.task import FAILURE_MODE_NAMES, STAGES
 from window_bench.harness.agent import (Agent, AgentSpec, arm_power, generator_state,
                                         load_optimizer_state, module_state, optimizer_state,
                                         with_overrides)
-from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, extra_features,
-                                              extra_inputs)
+from window_bench.installer.supervisor import check_fine_pose, extra_features, extra_inputs
 
 #: Number of leading floats of the ``flat`` observation that belong to the robot: the
 #: ``robot0_*`` entries of ``window_bench.envs.env.STATE_KEYS`` (7 + 7 + 3 + 4 + 1 + 18).

@@ -47,8 +47,7 @@ from torchrl.modules import MLP
 
 from window_bench.envs.env import VACUUM_THRESHOLD
 from window_bench.data.replay import PROVENANCE_CODES
-from window_bench.installer.supervisor import (FLAT_DIM, check_fine_pose, extra_features,
-                                              extra_inputs)
+from window_bench.installer.supervisor import check_fine_pose, extra_features, extra_inputs
 from window_bench.harness.agent import (Agent, arm_power, config_from_plain,
                                         load_optimizer_state, module_state, optimizer_state,
                                         plain, with_overrides)
